@@ -1,0 +1,174 @@
+"""Every parameter of the pipeline, in one tree of frozen dataclasses.
+
+Each stage has its own section; the library functions take plain keyword arguments and the
+pipeline unpacks the section a stage needs. Defaults that come from the paper (Sensors 2024, 24,
+2299, doi:10.3390/s24072299) cite it in the field's ``source`` metadata, which
+``tunneldef config --dump`` prints beside each value.
+
+Load a partial TOML file with :func:`load_config` (unknown keys are an error); every key that is
+absent keeps its default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+__all__ = [
+    "SlicingConfig",
+    "CenterlineConfig",
+    "RegistrationConfig",
+    "DeformationConfig",
+    "DangerConfig",
+    "Config",
+    "load_config",
+    "dump_config",
+]
+
+
+def _p(default: Any, source: str) -> Any:
+    """A dataclass field with a documented source for its default."""
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: default, metadata={"source": source})
+    return field(default=default, metadata={"source": source})
+
+
+@dataclass(frozen=True)
+class SlicingConfig:
+    """Cutting the cloud into cross-section slices along the axis (paper §3.1.1)."""
+
+    step: float = _p(0.5, "ours: 2 slices per metre; the paper shows slices 1 m apart (§4.1)")
+    thickness: float = _p(0.2, "ours: thick enough for ~1e3 points at handheld density")
+    min_points: int = _p(200, "ours: fewer points than this and a slice is rejected")
+
+
+@dataclass(frozen=True)
+class CenterlineConfig:
+    """Roof/floor lines, wall lines and the NURBS centreline (paper §3.1.2-3.1.4)."""
+
+    kde_bandwidth: float = _p(0.1, "paper §4.1, Fig. 13: Gaussian KDE window 0.1 m")
+    grid_cell: float = _p(0.02, "ours: pixel of the 2-D linear-kernel density image, m")
+    degree: int = _p(3, "paper §3.1.4: cubic NURBS")
+    sample_step: float = _p(0.05, "ours: spacing of centreline samples, m")
+    max_iterations: int = _p(3, "ours: re-slicing passes normal to the curve (curved tunnels)")
+    vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)")
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Registration of the compared epoch onto the reference (paper §3.2)."""
+
+    method: str = _p("centerline", "paper §3.2; also icp_point, icp_plane, gicp, ndt")
+    floor_ransac_distance: float = _p(0.05, "ours: RANSAC inlier distance for the floor plane")
+    plan_angle_step_deg: float = _p(0.01, "ours: smallest rotation step of the plan alignment")
+    refine: bool = _p(True, "ours: final robust point-to-plane on stable shell")
+    voxel: float = _p(0.05, "ours: voxel size for refinement and baselines, m")
+
+
+@dataclass(frozen=True)
+class DeformationConfig:
+    """Per-point and per-section deformation (paper §3.3)."""
+
+    method: str = _p("knn", "paper §3.3.1 KNN centroid; 'robust' = local-surface estimator")
+    k: int = _p(3, "paper §4.3, Table 3: k = 3 nearest neighbours")
+    section_step: float = _p(1.0, "paper Table 4: sections 1 m apart")
+    section_thickness: float = _p(0.2, "ours: points within +-0.1 m of a section's chainage")
+
+
+@dataclass(frozen=True)
+class DangerConfig:
+    """Danger classification (paper §4.3, Fig. 22)."""
+
+    threshold: float = _p(0.05, "ours: |deformation| above 50 mm is flagged")
+    rule: str = _p("absolute", "'absolute' threshold, or 'mean' (paper §4.3: mean |deformation|)")
+    min_zone_length: float = _p(0.2, "ours: shorter danger runs along the chainage are merged")
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole parameter tree."""
+
+    slicing: SlicingConfig = field(default_factory=SlicingConfig)
+    centerline: CenterlineConfig = field(default_factory=CenterlineConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    deformation: DeformationConfig = field(default_factory=DeformationConfig)
+    danger: DangerConfig = field(default_factory=DangerConfig)
+
+    def replace(self, **sections: dict[str, Any]) -> Config:
+        """A copy with some values of some sections changed, e.g.
+        ``cfg.replace(danger={"threshold": 0.02})``."""
+        return _from_dict(self, sections)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain nested dict of all values."""
+        return dataclasses.asdict(self)
+
+
+def _from_dict(base: Config, data: dict[str, Any]) -> Config:
+    changes = {}
+    for section, values in data.items():
+        if section not in {f.name for f in dataclasses.fields(base)}:
+            raise ConfigError(f"unknown config section [{section}]")
+        if not isinstance(values, dict):
+            raise ConfigError(f"config section [{section}] must be a table")
+        current = getattr(base, section)
+        known = {f.name: f for f in dataclasses.fields(current)}
+        for key, value in values.items():
+            if key not in known:
+                raise ConfigError(f"unknown config key {section}.{key}")
+            expected = type(getattr(current, key))
+            if expected is float and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+                raise ConfigError(
+                    f"config key {section}.{key} must be {expected.__name__}, got {value!r}"
+                )
+            values = {**values, key: value}
+        changes[section] = dataclasses.replace(current, **values)
+    return dataclasses.replace(base, **changes)
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Read a (partial) TOML config; missing keys keep their defaults.
+
+    Raises
+    ------
+    ConfigError
+        If the file is missing, not TOML, or has unknown keys or wrongly typed values.
+    """
+    if path is None:
+        return Config()
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file not found: {p}")
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"config file {p} is not valid TOML: {exc}") from None
+    return _from_dict(Config(), data)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(v)
+
+
+def dump_config(config: Config | None = None) -> str:
+    """TOML text of every parameter, each with its source as a comment."""
+    config = config or Config()
+    lines = ["# tunneldef configuration: every parameter, its value and where the default comes from"]
+    for sec in dataclasses.fields(config):
+        section = getattr(config, sec.name)
+        lines.append(f"\n[{sec.name}]")
+        for f in dataclasses.fields(section):
+            lines.append(f"{f.name} = {_toml_value(getattr(section, f.name))}"
+                         f"  # {f.metadata.get('source', '')}")
+    return "\n".join(lines) + "\n"
