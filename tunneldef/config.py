@@ -118,6 +118,7 @@ def _from_dict(base: Config, data: dict[str, Any]) -> Config:
             raise ConfigError(f"config section [{section}] must be a table")
         current = getattr(base, section)
         known = {f.name: f for f in dataclasses.fields(current)}
+        checked: dict[str, Any] = {}
         for key, value in values.items():
             if key not in known:
                 raise ConfigError(f"unknown config key {section}.{key}")
@@ -128,8 +129,8 @@ def _from_dict(base: Config, data: dict[str, Any]) -> Config:
                 raise ConfigError(
                     f"config key {section}.{key} must be {expected.__name__}, got {value!r}"
                 )
-            values = {**values, key: value}
-        changes[section] = dataclasses.replace(current, **values)
+            checked[key] = value
+        changes[section] = dataclasses.replace(current, **checked)
     return dataclasses.replace(base, **changes)
 
 
@@ -164,7 +165,7 @@ def _toml_value(v: Any) -> str:
 def dump_config(config: Config | None = None) -> str:
     """TOML text of every parameter, each with its source as a comment."""
     config = config or Config()
-    lines = ["# tunneldef configuration: every parameter, its value and where the default comes from"]
+    lines = ["# tunneldef configuration: every parameter, its value and the source of its default"]
     for sec in dataclasses.fields(config):
         section = getattr(config, sec.name)
         lines.append(f"\n[{sec.name}]")

@@ -1,0 +1,469 @@
+"""The ``tunneldef`` command.
+
+Subcommands: ``info``, ``synth``, ``centerline``, ``register``, ``detect``, ``demo``, ``config``.
+User mistakes (missing file, bad format, non-overlapping epochs...) print one line to stderr and
+exit with code 2; ``--quiet`` silences progress. Heavy imports happen inside the commands.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from . import __version__
+from .errors import TunnelDefError
+from .report.summary import to_json, write_csv, write_text_atomic
+
+log = logging.getLogger("tunneldef")
+
+EXIT_USER_ERROR = 2
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+class _StageProgress:
+    """Progress callback that logs one line per stage (and per 25 % inside long stages)."""
+
+    def __init__(self, logger: logging.Logger) -> None:
+        self._log = logger
+        self._stage: str | None = None
+        self._quarter = -1
+        self._start = time.perf_counter()
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        quarter = int(fraction * 4)
+        if stage != self._stage:
+            self._stage, self._quarter = stage, quarter
+            self._log.info("[%5.1f s] %s", time.perf_counter() - self._start, stage)
+        elif quarter > self._quarter and 0 < quarter < 4:
+            self._quarter = quarter
+            self._log.info("[%5.1f s] %s: %d %%", time.perf_counter() - self._start, stage,
+                           quarter * 25)
+
+
+def _setup_logging(quiet: bool, verbose: bool) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    root = logging.getLogger("tunneldef")
+    root.handlers[:] = [h for h in root.handlers if isinstance(h, logging.NullHandler)]
+    root.addHandler(handler)
+    root.setLevel(logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO)
+    root.propagate = False
+
+
+def _existing_file(path: str) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise TunnelDefError(f"input file not found: {p}")
+    if p.is_dir():
+        raise TunnelDefError(f"input is a folder, not a point cloud file: {p}")
+    return p
+
+
+def _check_output(out: Path, inputs: Sequence[Path]) -> None:
+    """Refuse to overwrite an input and to write into a missing folder."""
+    for src in inputs:
+        if out.resolve() == src.resolve():
+            raise TunnelDefError(
+                f"output {out} is the same file as input {src}; choose another name"
+            )
+    if not out.parent.resolve().is_dir():
+        raise TunnelDefError(f"output folder does not exist: {out.parent}")
+
+
+def _load_config(args: argparse.Namespace):  # noqa: ANN202
+    from .config import load_config
+
+    return load_config(getattr(args, "config", None))
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .errors import NotATunnelError
+    from .frame import principal_frame
+    from .io import read
+
+    cloud = read(_existing_file(args.file), strict=args.strict)
+    lo, hi = cloud.bounds
+    out = [
+        f"file:       {args.file}",
+        f"points:     {len(cloud):,}",
+        f"bounds min: {lo[0]:.4f} {lo[1]:.4f} {lo[2]:.4f}",
+        f"bounds max: {hi[0]:.4f} {hi[1]:.4f} {hi[2]:.4f}",
+        f"extent:     {hi[0] - lo[0]:.3f} x {hi[1] - lo[1]:.3f} x {hi[2] - lo[2]:.3f} m",
+    ]
+    if cloud.meta.get("dropped_nonfinite"):
+        out.append(f"dropped:    {cloud.meta['dropped_nonfinite']} points with NaN/inf coordinates")
+    out.append(f"attributes: {len(cloud.fields)}")
+    for name, values in cloud.fields.items():
+        v = np.asarray(values)
+        rng = f"{v.min():.6g} .. {v.max():.6g}" if v.size and v.dtype.kind in "biuf" else ""
+        out.append(f"  {name:<24s} {str(v.dtype):<8s} {rng}")
+    try:
+        frame = principal_frame(cloud.xyz)
+        local = frame.to_local(cloud.xyz)
+        p = np.percentile(local, [0.5, 99.5], axis=0)
+        azimuth = np.degrees(np.arctan2(frame.axes[0, 1], frame.axes[0, 0])) % 360.0
+        out += [
+            "tunnel axis (PCA guess):",
+            f"  direction:  azimuth {azimuth:.2f} deg from +x (counter-clockwise), horizontal",
+            f"  length:     {p[1, 0] - p[0, 0]:.2f} m (0.5-99.5 % extent along the axis)",
+            f"  across:     {p[1, 1] - p[0, 1]:.2f} m wide x {p[1, 2] - p[0, 2]:.2f} m high "
+            "(outer extent, includes chambers and clutter)",
+        ]
+    except NotATunnelError as exc:
+        out.append(f"tunnel axis: none ({exc})")
+    print("\n".join(out))
+    return 0
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from . import synth
+
+    out_dir = Path(args.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    deformations = []
+    if args.sag > 0:
+        deformations.append(synth.DeformationSpec(kind="roof_sag", chainage=args.length / 2,
+                                                  amplitude=args.sag))
+    spec = synth.PairSpec(
+        tunnel=synth.TunnelSpec(
+            length=args.length,
+            radius=args.radius,
+            section=synth.SectionSpec(kind=args.section),
+            density=args.density,
+            noise_sigma=args.noise,
+            chamber=args.chamber,
+            equipment=args.equipment,
+            conveyor=args.conveyor,
+        ),
+        deformations=tuple(deformations),
+        seed=args.seed,
+    )
+    log.info("generating a synthetic pair (%s section, %.0f m)...", args.section, args.length)
+    pair = synth.make_pair(spec)
+    paths = synth.write_pair(pair, out_dir, fmt=args.format)
+    for name, p in paths.items():
+        log.info("wrote %-6s %s", name, p)
+    log.info("reference: %s points; compared: %s points", f"{len(pair.ref):,}",
+             f"{len(pair.cmp):,}")
+    return 0
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    from .config import dump_config
+
+    print(dump_config(_load_config(args)), end="")
+    return 0
+
+
+def cmd_centerline(args: argparse.Namespace) -> int:
+    from .centerline import extract_centerline
+    from .io import read
+
+    src = _existing_file(args.input)
+    out = Path(args.output)
+    _check_output(out, [src])
+    config = _load_config(args)
+    cloud = read(src, strict=args.strict)
+    progress = None if args.quiet else _StageProgress(log)
+    result = extract_centerline(cloud.xyz, config=config, progress=progress)
+    _write_centerline(result, out)
+    ok = sum(1 for r in result.table() if r.get("ok", True))
+    log.info("centreline: %.2f m, %d slices (%d usable) -> %s", result.centerline.length,
+             len(result.slices), ok, out)
+    if args.plots:
+        from .report.centerline_plots import plot_centerline_diagnostics
+
+        plot_dir = Path(args.plots)
+        plot_dir.mkdir(parents=True, exist_ok=True)
+        for p in plot_centerline_diagnostics(result, cloud.xyz, plot_dir):
+            log.info("figure: %s", p)
+    return 0
+
+
+def _write_centerline(result: Any, out: Path) -> None:
+    """CSV: one row per slice (chainage, centre, width, height, quality); PLY/LAS: curve samples."""
+    import numpy as np
+
+    from .cloud import Cloud
+    from .io import write
+
+    suffix = out.suffix.lower()
+    if suffix == ".csv":
+        rows = result.table()
+        if not rows:
+            raise TunnelDefError("no slice produced a centre; nothing to write")
+        write_csv(out, rows)
+    elif suffix == ".json":
+        write_text_atomic(out, to_json({"centerline": result.centerline.to_dict(),
+                                           "slices": result.table()}))
+    else:
+        cl = result.centerline
+        cloud = Cloud(cl.points, {"chainage": cl.chainage.astype(np.float32)})
+        write(out, cloud)
+
+
+def cmd_register(args: argparse.Namespace) -> int:
+    from .io import read, write
+    from .pipeline import register_epochs
+
+    ref_path, cmp_path = _existing_file(args.reference), _existing_file(args.compared)
+    out = Path(args.output)
+    _check_output(out, [ref_path, cmp_path])
+    if args.transform:
+        _check_output(Path(args.transform), [ref_path, cmp_path])
+    config = _load_config(args)
+    if args.method:
+        config = config.replace(registration={"method": args.method})
+    ref, cmp = read(ref_path, strict=args.strict), read(cmp_path, strict=args.strict)
+    progress = None if args.quiet else _StageProgress(log)
+    reg = register_epochs(ref, cmp, config, progress=progress).registration
+    moved = cmp.transformed(reg.transform)
+    write(out, moved)
+    if args.transform:
+        write_text_atomic(Path(args.transform), to_json(reg.to_dict()))
+    import numpy as np
+
+    with np.printoptions(precision=6, suppress=True):
+        log.info("transform (compared -> reference):\n%s", reg.transform)
+    log.info("fitness (RMSE) %.4f m; axial uncertainty %.3f m; wrote %s", reg.fitness,
+             reg.axial_uncertainty, out)
+    return 0
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    from .io import read, write
+    from .pipeline import detect
+
+    ref_path, cmp_path = _existing_file(args.reference), _existing_file(args.compared)
+    if ref_path.resolve() == cmp_path.resolve():
+        raise TunnelDefError("reference and compared are the same file; give two epochs")
+    out = Path(args.output)
+    extra = [Path(p) for p in (args.summary, args.sections) if p]
+    for p in [out, *extra]:
+        _check_output(p, [ref_path, cmp_path])
+    config = _apply_overrides(_load_config(args), args)
+    ref, cmp = read(ref_path, strict=args.strict), read(cmp_path, strict=args.strict)
+    log.info("reference %s: %s points; compared %s: %s points", ref_path.name, f"{len(ref):,}",
+             cmp_path.name, f"{len(cmp):,}")
+    progress = None if args.quiet else _StageProgress(log)
+    result = detect(ref, cmp, config, progress=progress)
+    write(out, result.cloud)
+    summary = result.summary()
+    summary["inputs"] = {"reference": str(ref_path), "compared": str(cmp_path), "output": str(out)}
+    if args.summary:
+        write_text_atomic(Path(args.summary), to_json(summary))
+    if args.sections:
+        from .deformation.sections import write_sections_csv
+
+        write_sections_csv(result.sections, Path(args.sections))
+    _log_result(summary)
+    log.info("wrote %s", ", ".join(str(p) for p in [out, *extra]))
+    return 0
+
+
+def _apply_overrides(config: Any, args: argparse.Namespace) -> Any:
+    danger: dict[str, Any] = {}
+    deformation: dict[str, Any] = {}
+    if getattr(args, "threshold", None) is not None:
+        danger["threshold"] = float(args.threshold)
+    if getattr(args, "rule", None):
+        danger["rule"] = args.rule
+    if getattr(args, "method", None):
+        deformation["method"] = args.method
+    if getattr(args, "k", None) is not None:
+        deformation["k"] = int(args.k)
+    changes = {k: v for k, v in (("danger", danger), ("deformation", deformation)) if v}
+    if getattr(args, "registration", None):
+        changes["registration"] = {"method": args.registration}
+    return config.replace(**changes) if changes else config
+
+
+def _log_result(summary: dict[str, Any]) -> None:
+    stats = summary.get("statistics", {})
+    if stats:
+        log.info(
+            "shell deformation: mean %+.1f mm, mean |d| %.1f mm, p95 |d| %.1f mm over %s points",
+            1e3 * stats.get("mean", float("nan")), 1e3 * stats.get("mean_abs", float("nan")),
+            1e3 * stats.get("p95_abs", float("nan")), f"{stats.get('count', 0):,}",
+        )
+    zones = summary.get("danger_zones", [])
+    thr = summary.get("danger_threshold_m")
+    if thr is not None:
+        log.info("danger threshold %.1f mm: %d zone(s)", 1e3 * thr, len(zones))
+    for z in zones[:10]:
+        log.info("  chainage %7.2f-%7.2f m  %-5s peak %+.1f mm at %.2f m (%d points)",
+                 z["start"], z["end"], z.get("surface", ""), 1e3 * z["peak"],
+                 z.get("peak_chainage", float("nan")), z.get("count", 0))
+    if len(zones) > 10:
+        log.info("  ... %d more in the summary", len(zones) - 10)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    run_demo(Path(args.out_dir), seed=args.seed, quick=args.quick,
+             progress=None if args.quiet else _StageProgress(log))
+    return 0
+
+
+# --------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                        help="only warnings and errors")
+    common.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                        help="debug messages")
+    reading = argparse.ArgumentParser(add_help=False)
+    reading.add_argument("--strict", action="store_true",
+                         help="refuse inputs with NaN/inf coordinates instead of dropping them")
+    configured = argparse.ArgumentParser(add_help=False)
+    configured.add_argument("--config", metavar="TOML",
+                            help="parameter file (see `tunneldef config --dump`)")
+
+    parser = argparse.ArgumentParser(
+        prog="tunneldef",
+        description="Tunnel deformation from two epochs of mobile laser scans "
+        "(centreline registration, per-point and per-section deformation).",
+        parents=[common],
+    )
+    parser.add_argument("--version", action="version", version=f"tunneldef {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("info", parents=[common, reading],
+                       help="points, bounds, attributes and a guess of the tunnel axis",
+                       description="Print points, bounds, attributes and a guess of the tunnel "
+                       "axis and length of a cloud (PLY, LAS, LAZ, PCD, XYZ/TXT).")
+    p.add_argument("file", help="point cloud file")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("synth", parents=[common],
+                       help="write a synthetic epoch pair with ground truth",
+                       description="Write a synthetic reference/compared pair (ref.*, cmp.*) "
+                       "and its ground truth (truth.npz) into OUT_DIR.")
+    p.add_argument("out_dir", help="output folder (created if missing)")
+    p.add_argument("--length", type=float, default=30.0, help="tunnel length, m (default 30)")
+    p.add_argument("--radius", type=float, default=None,
+                   help="horizontal radius of a curved tunnel, m (default: straight)")
+    p.add_argument("--section", choices=["rectangle", "arch", "trapezoid"], default="rectangle",
+                   help="section shape (default rectangle, 5.8 x 2.86 m as in the paper)")
+    p.add_argument("--density", type=float, default=400.0,
+                   help="points per square metre of shell (default 400)")
+    p.add_argument("--noise", type=float, default=0.015,
+                   help="Gaussian noise sigma, m (default 0.015: the scanner's +-3 cm as 2 sigma)")
+    p.add_argument("--sag", type=float, default=0.03,
+                   help="roof sag amplitude at mid-length in the compared epoch, m (default 0.03)")
+    p.add_argument("--chamber", action="store_true", help="add a side chamber")
+    p.add_argument("--equipment", action="store_true", help="add pipes and cables on the walls")
+    p.add_argument("--conveyor", action="store_true", help="add a conveyor with a coal load")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--format", choices=["ply", "las", "laz"], default="ply",
+                   help="file format (default ply)")
+    p.set_defaults(func=cmd_synth)
+
+    p = sub.add_parser("centerline", parents=[common, reading, configured],
+                       help="extract the tunnel centreline (paper §3.1)",
+                       description="Extract the centreline of one epoch: slices, roof/floor "
+                       "lines by 1-D Gaussian KDE peaks, wall lines by 2-D linear-kernel density "
+                       "+ Canny + Hough, NURBS fit. CSV output holds one row per slice; "
+                       "PLY/LAS/LAZ output holds the curve's samples with a chainage field.")
+    p.add_argument("input", help="point cloud file")
+    p.add_argument("-o", "--output", required=True,
+                   help="centerline.csv (slices), .json, or .ply/.las/.laz (curve points)")
+    p.add_argument("--plots", metavar="DIR", help="write diagnostic figures into DIR")
+    p.set_defaults(func=cmd_centerline)
+
+    p = sub.add_parser("register", parents=[common, reading, configured],
+                       help="register the compared epoch onto the reference (paper §3.2)",
+                       description="Register CMP onto REF by their centrelines (default) or a "
+                       "baseline (ICP, GICP, NDT) and write CMP moved into REF's frame.")
+    p.add_argument("reference", help="reference epoch (earlier scan)")
+    p.add_argument("compared", help="compared epoch (later scan)")
+    p.add_argument("-o", "--output", required=True, help="registered copy of the compared epoch")
+    p.add_argument("--transform", metavar="JSON", help="write the 4x4 transform and diagnostics")
+    p.add_argument("--method", choices=["centerline", "icp_point", "icp_plane", "gicp", "ndt"],
+                   help="registration method (default: centerline)")
+    p.set_defaults(func=cmd_register)
+
+    p = sub.add_parser("detect", parents=[common, reading, configured],
+                       help="the main job: per-point and per-section deformation",
+                       description="Register CMP onto REF and compute deformation. OUT holds "
+                       "CMP's points in CMP's order with its attributes, coordinates in REF's "
+                       "frame, and fields deformation, deformation_horizontal, "
+                       "deformation_vertical, chainage (float32, m) and danger (uint8). "
+                       "Negative deformation = the surface moved into the tunnel.")
+    p.add_argument("reference", help="reference epoch (earlier scan)")
+    p.add_argument("compared", help="compared epoch (later scan)")
+    p.add_argument("-o", "--output", required=True, help="output cloud (.ply, .las, .laz, ...)")
+    p.add_argument("--summary", metavar="JSON", help="write transform, centrelines, statistics")
+    p.add_argument("--sections", metavar="CSV", help="write per-section statistics")
+    p.add_argument("--threshold", type=float, metavar="M",
+                   help="danger threshold on |deformation|, m")
+    p.add_argument("--rule", choices=["absolute", "mean"],
+                   help="danger rule: absolute threshold or the paper's mean |deformation|")
+    p.add_argument("--method", choices=["knn", "robust"],
+                   help="deformation estimator: the paper's KNN centroid or the robust one")
+    p.add_argument("--k", type=int, help="neighbours of the KNN centroid (paper: 3)")
+    p.add_argument("--registration",
+                   choices=["centerline", "icp_point", "icp_plane", "gicp", "ndt"],
+                   help="registration method (default: centerline)")
+    p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("demo", parents=[common],
+                       help="run detect on a built-in synthetic pair and write figures",
+                       description="Make a synthetic pair with a known roof sag, wall bulge "
+                       "and floor heave, run detect, and write the outputs and PNG figures "
+                       "into DIR, printing measured versus true deformation.")
+    p.add_argument("out_dir", nargs="?", default="tunneldef_demo",
+                   help="output folder (default ./tunneldef_demo)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--quick", action="store_true", help="a smaller pair (for a fast check)")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("config", parents=[common, configured],
+                       help="print every parameter with its default and source",
+                       description="Print the configuration as TOML, every value with the "
+                       "source of its default (the paper's section or ours).")
+    p.add_argument("--dump", action="store_true", help="print the configuration (default action)")
+    p.set_defaults(func=cmd_config)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``tunneldef`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.quiet = getattr(args, "quiet", False)
+    args.verbose = getattr(args, "verbose", False)
+    _setup_logging(args.quiet, args.verbose)
+    try:
+        return int(args.func(args) or 0)
+    except TunnelDefError as exc:
+        print(f"tunneldef: error: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except PermissionError as exc:
+        print(f"tunneldef: error: permission denied: {exc.filename}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except IsADirectoryError as exc:
+        print(f"tunneldef: error: expected a file, got a folder: {exc.filename}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("tunneldef: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

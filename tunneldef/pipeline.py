@@ -1,0 +1,277 @@
+"""The whole flow, two clouds in, one result out: the only place that chains the stages.
+
+``detect(ref, cmp)``: check the epochs -> centrelines of both (paper §3.1) -> registration of the
+compared epoch onto the reference (§3.2) -> per-point deformation against the reference
+centreline (§3.3.1-3.3.2) -> per-section statistics and danger zones (§4.3). Hosts (CLI,
+CloudCompare plugin, scripts) convert their inputs to :class:`~tunneldef.cloud.Cloud`, call
+:func:`detect` and write ``result.cloud`` back.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .centerline.curve import Centerline
+from .cloud import Cloud, check_points
+from .config import Config
+from .errors import EpochMismatchError
+from .frame import principal_frame
+from .progress import ProgressCallback, report
+
+__all__ = ["detect", "register_epochs", "Result", "Registered", "OUTPUT_FIELDS"]
+
+log = logging.getLogger(__name__)
+
+#: Fields every output of :func:`detect` carries (DESIGN.md output contract).
+OUTPUT_FIELDS = ("deformation", "deformation_horizontal", "deformation_vertical", "chainage",
+                 "danger")
+
+_MIN_POINTS = 1000
+_MAX_SCALE_RATIO = 4.0
+_MIN_OVERLAP = 0.2
+
+
+def _stage(progress: ProgressCallback | None, name: str) -> ProgressCallback | None:
+    """A callback that reports a sub-step under a stage label."""
+    if progress is None:
+        return None
+
+    def cb(step: str, fraction: float) -> None:
+        progress(f"{name}: {step}" if step else name, fraction)
+
+    return cb
+
+
+def check_epochs(ref: Cloud, cmp: Cloud) -> None:
+    """Refuse pairs that cannot be compared: too small, or in different units.
+
+    Raises
+    ------
+    InvalidCloudError, NotATunnelError, EpochMismatchError
+    """
+    check_points(ref.xyz, name="reference", min_points=_MIN_POINTS)
+    check_points(cmp.xyz, name="compared", min_points=_MIN_POINTS)
+    fr, fc = principal_frame(ref.xyz), principal_frame(cmp.xyz)
+    # the spread across the axis is the section size, independent of length and heading
+    sr = float(np.sqrt(fr.variances[1] + fr.variances[2]))
+    sc = float(np.sqrt(fc.variances[1] + fc.variances[2]))
+    ratio = max(sr, sc) / max(min(sr, sc), 1e-12)
+    if ratio > _MAX_SCALE_RATIO:
+        raise EpochMismatchError(
+            f"the epochs differ in scale by about x{ratio:.0f} (section spread {sr:.3g} vs "
+            f"{sc:.3g}); are both in metres?"
+        )
+
+
+@dataclass
+class Registered:
+    """Both epochs' centreline extractions and the registration of compared onto reference."""
+
+    ref_extraction: Any
+    cmp_extraction: Any
+    registration: Any
+
+
+def register_epochs(
+    ref: Cloud, cmp: Cloud, config: Config | None = None, *,
+    progress: ProgressCallback | None = None,
+) -> Registered:
+    """Extract both centrelines and register the compared epoch onto the reference.
+
+    Returns
+    -------
+    Registered
+        ``registration.transform`` maps compared coordinates into the reference frame.
+    """
+    from .centerline import extract_centerline
+    from .registration import register
+
+    config = config or Config()
+    check_epochs(ref, cmp)
+    ref_ex = extract_centerline(ref.xyz, config=config, progress=_stage(progress,
+                                                                        "reference centreline"))
+    cmp_ex = extract_centerline(cmp.xyz, config=config, progress=_stage(progress,
+                                                                        "compared centreline"))
+    _check_section_sizes(ref_ex, cmp_ex)
+    reg = register(ref.xyz, cmp.xyz, method=config.registration.method,
+                   ref_centerline=ref_ex, cmp_centerline=cmp_ex, config=config,
+                   progress=_stage(progress, "registration"))
+    return Registered(ref_ex, cmp_ex, reg)
+
+
+def _check_section_sizes(ref_ex: Any, cmp_ex: Any) -> None:
+    def median_size(ex: Any) -> float:
+        vals = [r.width for r in ex.slices if getattr(r, "ok", True) and np.isfinite(r.width)]
+        return float(np.median(vals)) if vals else float("nan")
+
+    wr, wc = median_size(ref_ex), median_size(cmp_ex)
+    if np.isfinite(wr) and np.isfinite(wc) and max(wr, wc) > _MAX_SCALE_RATIO * min(wr, wc):
+        raise EpochMismatchError(
+            f"the tunnels differ in width ({wr:.3g} vs {wc:.3g} in file units); "
+            "are both epochs of the same tunnel, in metres?"
+        )
+
+
+@dataclass
+class Result:
+    """Everything :func:`detect` found.
+
+    Attributes
+    ----------
+    cloud : Cloud
+        The compared epoch's points (same order, original fields), coordinates in the
+        reference frame, with the float32 fields ``deformation``, ``deformation_horizontal``,
+        ``deformation_vertical``, ``chainage`` (m) and uint8 ``danger`` (plus ``shell``,
+        ``surface``, ``significant``, ``lod95`` when the estimator gives them).
+    transform : ndarray, shape (4, 4)
+        Compared -> reference rigid transform.
+    """
+
+    cloud: Cloud
+    transform: np.ndarray
+    registration: Any
+    ref_centerline: Centerline
+    cmp_centerline: Centerline
+    deformation: Any
+    sections: list[dict[str, Any]]
+    zones: list[dict[str, Any]]
+    danger_threshold: float
+    config: Config
+    ref_slices: list[Any] = field(default_factory=list)
+    cmp_slices: list[Any] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def statistics(self) -> dict[str, Any]:
+        """Global statistics of the signed deformation on shell points (m)."""
+        d = np.asarray(self.cloud.fields["deformation"], dtype=np.float64)
+        shell = np.asarray(self.cloud.fields.get("shell", np.ones(len(d))), dtype=bool)
+        v = d[shell & np.isfinite(d)]
+        out: dict[str, Any] = {"count": int(v.size), "points": int(d.size)}
+        if v.size:
+            a = np.abs(v)
+            out.update(mean=float(v.mean()), std=float(v.std()), mean_abs=float(a.mean()),
+                       p50_abs=float(np.percentile(a, 50)), p95_abs=float(np.percentile(a, 95)),
+                       min=float(v.min()), max=float(v.max()))
+        danger = np.asarray(self.cloud.fields["danger"])
+        out["danger_points"] = int(danger.sum())
+        if "significant" in self.cloud.fields:
+            out["significant_fraction"] = float(np.mean(self.cloud.fields["significant"][shell]))
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-serialisable summary: transform, centrelines, sections, zones, parameters."""
+        reg = self.registration
+        return {
+            "software": {"name": "tunneldef", "version": __version__},
+            "transform_compared_to_reference": np.asarray(self.transform).tolist(),
+            "registration": reg.to_dict() if hasattr(reg, "to_dict") else {},
+            "statistics": self.statistics(),
+            "danger_threshold_m": self.danger_threshold,
+            "danger_zones": self.zones,
+            "sections": self.sections,
+            "reference_centerline": self.ref_centerline.to_dict(),
+            "compared_centerline": self.cmp_centerline.to_dict(),
+            "parameters": self.config.to_dict(),
+            "timings_s": self.timings,
+            "sign_convention": "negative = the surface moved into the tunnel (roof sag, wall "
+                               "bulge, floor heave); positive = outward",
+        }
+
+
+def detect(
+    ref: Cloud, cmp: Cloud, config: Config | None = None, *,
+    progress: ProgressCallback | None = None,
+) -> Result:
+    """Register the compared epoch onto the reference and measure deformation.
+
+    Parameters
+    ----------
+    ref, cmp : Cloud
+        Reference (earlier) and compared (later) epochs, any frames, metres.
+    config : Config
+        Parameters (defaults: the paper's where it gives them).
+    progress : callable, optional
+        ``progress(stage, fraction)``; may raise :class:`tunneldef.progress.Cancelled`.
+
+    Returns
+    -------
+    Result
+
+    Raises
+    ------
+    TunnelDefError
+        On inputs that cannot be compared (too few points, not a tunnel, different units,
+        no overlap, failed registration).
+
+    Notes
+    -----
+    Steps: centrelines of both epochs (paper §3.1), centreline registration (§3.2), KNN-centroid
+    or robust per-point deformation with its horizontal/vertical split (§3.3), per-section
+    statistics (Table 4) and danger classification (Fig. 22).
+
+    References
+    ----------
+    Sensors 2024, 24, 2299, doi:10.3390/s24072299.
+    """
+    from .deformation import compute_deformation, danger_zones, section_statistics
+
+    config = config or Config()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    reg_all = register_epochs(ref, cmp, config, progress=progress)
+    reg = reg_all.registration
+    timings["centrelines_and_registration"] = time.perf_counter() - t0
+
+    t = time.perf_counter()
+    transform = np.asarray(reg.transform, dtype=np.float64)
+    moved = cmp.transformed(transform)
+    ref_cl = reg_all.ref_extraction.centerline
+    overlap = float(np.mean(ref_cl.project(moved.xyz).inside))
+    if overlap < _MIN_OVERLAP:
+        raise EpochMismatchError(
+            f"only {100 * overlap:.0f} % of the compared points lie along the reference "
+            "centreline after registration; do the epochs cover the same tunnel?"
+        )
+    d = compute_deformation(ref.xyz, moved.xyz, ref_cl, method=config.deformation.method,
+                            config=config, progress=_stage(progress, "deformation"))
+    timings["deformation"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    report(progress, "sections and danger zones", 0.0)
+    dc = config.danger
+    danger, zones = danger_zones(d, threshold=dc.threshold, rule=dc.rule,
+                                 min_zone_length=dc.min_zone_length)
+    threshold = float(dc.threshold)
+    if dc.rule == "mean":
+        shell = np.asarray(getattr(d, "shell", np.ones(len(d.deformation), bool)), bool)
+        threshold = float(np.nanmean(np.abs(d.deformation[shell])))
+    sections = section_statistics(d, step=config.deformation.section_step,
+                                  thickness=config.deformation.section_thickness)
+    fields = d.fields()
+    fields["danger"] = np.asarray(danger, dtype=np.uint8)
+    moved.add_fields(fields)
+    report(progress, "sections and danger zones", 1.0)
+    timings["sections_and_danger"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t0
+
+    return Result(
+        cloud=moved,
+        transform=transform,
+        registration=reg,
+        ref_centerline=ref_cl,
+        cmp_centerline=reg_all.cmp_extraction.centerline.transformed(transform),
+        deformation=d,
+        sections=sections,
+        zones=zones,
+        danger_threshold=threshold,
+        config=config,
+        ref_slices=list(reg_all.ref_extraction.slices),
+        cmp_slices=list(reg_all.cmp_extraction.slices),
+        timings=timings,
+    )

@@ -1,0 +1,69 @@
+"""Text outputs (JSON summaries, CSV tables), each written atomically."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["write_text_atomic", "to_json", "write_json", "write_csv"]
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write ``text`` to ``path`` through a temporary file in the same folder and a rename.
+
+    An existing file at ``path`` is replaced only once the new content is complete.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def to_json(obj: Any) -> str:
+    """Indented JSON text; numpy arrays and scalars become lists and numbers."""
+    return json.dumps(obj, indent=2, default=_default) + "\n"
+
+
+def write_json(path: str | Path, obj: Any) -> Path:
+    """Write ``obj`` as JSON, atomically."""
+    return write_text_atomic(path, to_json(obj))
+
+
+def _cell(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.6g}"
+    s = str(v)
+    return '"' + s.replace('"', '""') + '"' if ("," in s or '"' in s or "\n" in s) else s
+
+
+def write_csv(path: str | Path, rows: Sequence[dict[str, Any]]) -> Path:
+    """Write dict rows as CSV (header from the first row's keys), atomically."""
+    if not rows:
+        raise ValueError("no rows to write")
+    keys = list(rows[0].keys())
+    lines = [",".join(keys)] + [",".join(_cell(r.get(k)) for k in keys) for r in rows]
+    return write_text_atomic(path, "\n".join(lines) + "\n")
