@@ -16,6 +16,7 @@ __all__ = [
     "RegistrationError",
     "EpochMismatchError",
     "ConfigError",
+    "MissingFileError",
 ]
 
 
@@ -49,3 +50,7 @@ class EpochMismatchError(TunnelDefError):
 
 class ConfigError(TunnelDefError):
     """A configuration value or file is invalid."""
+
+
+class MissingFileError(TunnelDefError):
+    """An input file does not exist or is not a regular file."""
