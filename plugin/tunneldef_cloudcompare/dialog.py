@@ -1,0 +1,135 @@
+"""The parameter dialog of "Detect deformation" and small message helpers.
+
+CloudCompare's Python runtime ships PySide2; it is imported lazily here and never declared as a
+dependency of the package. Without Qt (or without a running QApplication) the functions fall
+back to plain behaviour: the defaults are used as they are and messages go to the log/console.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any
+
+from .adapter import DetectParams
+
+log = logging.getLogger(__name__)
+
+__all__ = ["qt_widgets", "ask_detect_params", "show_message", "METHODS"]
+
+#: Deformation estimators offered in the dialog (``Config.deformation.method``).
+METHODS = ("knn", "robust")
+
+
+def qt_widgets() -> Any:
+    """``PySide2.QtWidgets`` if it can be used now (module present and a QApplication
+    running), else None."""
+    try:
+        from PySide2 import QtWidgets  # noqa: PLC0415 - optional, inside CloudCompare only
+    except ImportError:
+        return None
+    if QtWidgets.QApplication.instance() is None:
+        return None
+    return QtWidgets
+
+
+def show_message(text: str, *, title: str = "tunneldef", error: bool = False) -> None:
+    """A message box when Qt is available; always also in the log (CloudCompare's console)."""
+    (log.error if error else log.info)("%s", text)
+    qw = qt_widgets()
+    if qw is None:
+        print(f"[{title}] {text}")  # noqa: T201 - CloudCompare's console is stdout
+        return
+    box = qw.QMessageBox.critical if error else qw.QMessageBox.information
+    box(None, title, text)
+
+
+def ask_detect_params(
+    first_name: str, second_name: str, defaults: DetectParams | None = None
+) -> DetectParams | None:
+    """Ask which cloud is the reference and the detection parameters.
+
+    Parameters
+    ----------
+    first_name, second_name : str
+        Names of the two selected clouds, in selection order.
+    defaults : DetectParams
+        Initial values (``DetectParams.from_config()`` if None).
+
+    Returns
+    -------
+    DetectParams or None
+        None if the user pressed Cancel. Without Qt the defaults are returned unchanged
+        (first selected cloud = reference) and that choice is logged.
+    """
+    params = defaults or DetectParams.from_config()
+    qw = qt_widgets()
+    if qw is None:
+        ref, cmp = (second_name, first_name) if params.swap else (first_name, second_name)
+        log.info("no Qt dialog available: reference = %r, compared = %r, %s", ref, cmp, params)
+        return params
+    return _qt_dialog(qw, first_name, second_name, params)
+
+
+def _qt_dialog(qw: Any, first: str, second: str, params: DetectParams) -> DetectParams | None:
+    dlg = qw.QDialog()
+    dlg.setWindowTitle("tunneldef: detect deformation")
+    form = qw.QFormLayout(dlg)
+
+    state = {"swap": params.swap}
+    ref_label, cmp_label = qw.QLabel(), qw.QLabel()
+
+    def refresh() -> None:
+        ref, cmp = (second, first) if state["swap"] else (first, second)
+        ref_label.setText(f"<b>{ref}</b> (earlier epoch)")
+        cmp_label.setText(f"<b>{cmp}</b> (later epoch; receives the fields)")
+
+    def swap() -> None:
+        state["swap"] = not state["swap"]
+        refresh()
+
+    refresh()
+    swap_button = qw.QPushButton("Swap reference / compared")
+    swap_button.clicked.connect(swap)
+    form.addRow("Reference:", ref_label)
+    form.addRow("Compared:", cmp_label)
+    form.addRow("", swap_button)
+
+    threshold = qw.QDoubleSpinBox()
+    threshold.setDecimals(3)
+    threshold.setRange(0.001, 10.0)
+    threshold.setSingleStep(0.005)
+    threshold.setSuffix(" m")
+    threshold.setValue(params.threshold)
+    form.addRow("Danger threshold |deformation|:", threshold)
+
+    k = qw.QSpinBox()
+    k.setRange(1, 100)
+    k.setValue(params.k)
+    form.addRow("k nearest neighbours:", k)
+
+    method = qw.QComboBox()
+    method.addItems(list(METHODS))
+    if params.method in METHODS:
+        method.setCurrentIndex(METHODS.index(params.method))
+    form.addRow("Method:", method)
+
+    move = qw.QCheckBox("Also move the original compared cloud into the reference frame")
+    move.setChecked(params.move_original)
+    form.addRow("", move)
+
+    buttons = qw.QDialogButtonBox(qw.QDialogButtonBox.Ok | qw.QDialogButtonBox.Cancel)
+    buttons.accepted.connect(dlg.accept)
+    buttons.rejected.connect(dlg.reject)
+    form.addRow(buttons)
+
+    if not dlg.exec_():
+        return None
+    return dataclasses.replace(
+        params,
+        swap=state["swap"],
+        threshold=float(threshold.value()),
+        k=int(k.value()),
+        method=str(method.currentText()),
+        move_original=bool(move.isChecked()),
+    )

@@ -1,0 +1,234 @@
+"""The CloudCompare Python-runtime plugin: three menu actions over the tunneldef core.
+
+Found by CloudCompare through the entry point ``cloudcompare.plugins: tunneldef =
+tunneldef_cloudcompare.plugin:TunnelDefPlugin``. Only ``pycc`` and numpy are imported at module
+level (an import error would silently drop the plugin); the core, Open3D and Qt are imported
+inside the actions. Each action: read the selection on the main thread -> run the core in
+``pycc.RunInThread`` with a cancellable ``ccProgressDialog`` -> write fields / add entities on
+the main thread.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np  # noqa: F401 - the plugin's only other top-level dependency
+import pycc
+
+from . import adapter
+from .adapter import DetectParams, Outcome, ProgressBridge
+
+log = logging.getLogger(__name__)
+
+__all__ = ["TunnelDefPlugin", "detect_deformation", "extract_centerline", "register_to_reference"]
+
+
+def _console(text: str) -> None:
+    """Print to CloudCompare's console (the runtime redirects stdout there)."""
+    print(text)  # noqa: T201 - host code: this is the user-facing console
+
+
+def _error(text: str) -> None:
+    from .dialog import show_message
+
+    show_message(text, error=True)
+
+
+def _run_with_progress(
+    title: str,
+    func: Callable[..., Any],
+    *args: Any,
+    **kwargs: Any,
+) -> tuple[Outcome, ProgressBridge]:
+    """Run ``func(*args, progress=bridge, **kwargs)`` in a worker thread with a cancellable
+    progress dialog; the UI is frozen meanwhile. Exceptions come back in the Outcome."""
+    cc = pycc.GetInstance()
+    dialog = pycc.ccProgressDialog(cancelButton=True)
+    dialog.setMethodTitle(title)
+    dialog.setInfo("working... (Cancel stops at the next step)")
+    bridge = ProgressBridge(dialog)
+    dialog.start()
+    cc.freezeUI(True)
+    try:
+        outcome = pycc.RunInThread(adapter.run_guarded, func, *args, progress=bridge, **kwargs)
+    finally:
+        cc.freezeUI(False)
+        dialog.stop()
+    if outcome is None:  # a runtime that loses the return value
+        outcome = Outcome(error=RuntimeError("the worker thread returned nothing"))
+    return outcome, bridge
+
+
+def _report_failure(action: str, outcome: Outcome) -> None:
+    from tunneldef.errors import TunnelDefError
+
+    if outcome.cancelled:
+        _console(f"[tunneldef] {action}: cancelled; nothing was changed")
+    elif isinstance(outcome.error, TunnelDefError):
+        _error(f"{action}: {outcome.error}")
+    else:
+        log.error("%s failed", action, exc_info=outcome.error)
+        _error(f"{action} failed: {type(outcome.error).__name__}: {outcome.error}")
+
+
+def _selected_clouds(count: int, action: str) -> list[Any] | None:
+    cc = pycc.GetInstance()
+    clouds = adapter.point_clouds(cc.getSelectedEntities())
+    if len(clouds) != count:
+        what = "one point cloud" if count == 1 else f"{count} point clouds"
+        _error(f"{action}: select exactly {what} (selected: {len(clouds)})")
+        return None
+    return clouds
+
+
+def _add(entities: list[Any]) -> None:
+    cc = pycc.GetInstance()
+    for e in entities:
+        cc.addToDB(e)
+    cc.updateUI()
+    cc.redrawAll()
+
+
+# --------------------------------------------------------------------------- actions
+
+
+def detect_deformation(params: DetectParams | None = None, *, ask: bool = True) -> Any:
+    """Menu action *Detect deformation* on two selected clouds.
+
+    The first selected cloud is the reference unless swapped in the dialog. Returns the
+    :class:`adapter.DetectEntities` or None."""
+    action = "Detect deformation"
+    clouds = _selected_clouds(2, action)
+    if clouds is None:
+        return None
+    params = params or DetectParams.from_config()
+    if ask:
+        from .dialog import ask_detect_params
+
+        params = ask_detect_params(adapter._name(clouds[0]), adapter._name(clouds[1]), params)
+        if params is None:
+            return None
+    ref_e, cmp_e = (clouds[1], clouds[0]) if params.swap else (clouds[0], clouds[1])
+    config = adapter.config_from_params(params)
+    ref, cmp = adapter.entity_to_cloud(ref_e), adapter.entity_to_cloud(cmp_e)
+    _console(
+        f"[tunneldef] reference: {ref.meta['name']} ({len(ref)} points); "
+        f"compared: {cmp.meta['name']} ({len(cmp)} points); {params}"
+    )
+
+    outcome, bridge = _run_with_progress(action, adapter.compute_detect, ref, cmp, config)
+    if not outcome.ok:
+        _report_failure(action, outcome)
+        return None
+    result = outcome.value
+    made = adapter.apply_detect(
+        ref_e, cmp_e, result, threshold=params.threshold, move_original=params.move_original
+    )
+    _keep(made.keep_alive)
+    _add(made.new_entities())
+    _console(f"[tunneldef] stages: {', '.join(bridge.stages)}")
+    _console(
+        "[tunneldef] compared -> reference transform:\n" + adapter.format_matrix(result.transform)
+    )
+    stats = result.statistics() if hasattr(result, "statistics") else {}
+    if stats:
+        _console(
+            "[tunneldef] "
+            + ", ".join(
+                f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in stats.items()
+            )
+        )
+    _console(
+        f"[tunneldef] colour scale: blue = into the tunnel, red = outward, "
+        f"saturated at ±{made.limit * 1000:.0f} mm"
+    )
+    return made
+
+
+def extract_centerline(*, config: Any = None) -> Any:
+    """Menu action *Extract centerline*: one selected cloud -> a polyline.
+
+    Per-slice width/height are printed as a table in the console. Returns the polyline or
+    None."""
+    action = "Extract centerline"
+    clouds = _selected_clouds(1, action)
+    if clouds is None:
+        return None
+    entity = clouds[0]
+    cloud = adapter.entity_to_cloud(entity)
+    outcome, _ = _run_with_progress(action, adapter.compute_centerline, cloud, config)
+    if not outcome.ok:
+        _report_failure(action, outcome)
+        return None
+    poly, vertices, table = adapter.apply_centerline(entity, outcome.value)
+    _keep([vertices])
+    _add([poly])
+    _console(
+        f"[tunneldef] centreline of {cloud.meta['name']}: "
+        f"{outcome.value.centerline.length:.2f} m\n{table}"
+    )
+    return poly
+
+
+def register_to_reference(*, config: Any = None) -> Any:
+    """Menu action *Register to reference* on two selected clouds (first = reference).
+
+    Adds a registered copy of the second and prints the 4 x 4 matrix. Returns the copy or
+    None."""
+    action = "Register to reference"
+    clouds = _selected_clouds(2, action)
+    if clouds is None:
+        return None
+    ref_e, cmp_e = clouds
+    ref, cmp = adapter.entity_to_cloud(ref_e), adapter.entity_to_cloud(cmp_e)
+    outcome, _ = _run_with_progress(action, adapter.compute_register, ref, cmp, config)
+    if not outcome.ok:
+        _report_failure(action, outcome)
+        return None
+    reg = outcome.value
+    copy, matrix = adapter.apply_register(ref_e, cmp_e, cmp, reg)
+    _add([copy])
+    fitness = getattr(reg, "fitness", float("nan"))
+    _console(
+        f"[tunneldef] {cmp.meta['name']} -> {ref.meta['name']} "
+        f"(method {getattr(reg, 'method', '?')}, RMSE {fitness:.4f} m):\n{matrix}"
+    )
+    return copy
+
+
+_KEEP_ALIVE: list[Any] = []
+
+
+def _keep(objects: list[Any]) -> None:
+    """Hold Python references to vertex clouds CloudCompare does not own yet."""
+    _KEEP_ALIVE.extend(objects)
+
+
+class TunnelDefPlugin(pycc.PythonPluginInterface):
+    """tunneldef's menu in CloudCompare (Plugins > Python > tunneldef)."""
+
+    def __init__(self) -> None:
+        pycc.PythonPluginInterface.__init__(self)
+
+    def getActions(self) -> list[Any]:  # noqa: N802 - CloudCompare's API name
+        return [
+            pycc.Action(name="Detect deformation", target=_action(detect_deformation)),
+            pycc.Action(name="Extract centerline", target=_action(extract_centerline)),
+            pycc.Action(name="Register to reference", target=_action(register_to_reference)),
+        ]
+
+
+def _action(func: Callable[[], Any]) -> Callable[[], None]:
+    """A menu target: runs ``func`` and turns any escaping exception into a message."""
+
+    def target() -> None:
+        try:
+            func()
+        except Exception as exc:  # noqa: BLE001 - last resort: never crash CloudCompare
+            log.exception("tunneldef action failed")
+            _error(f"{type(exc).__name__}: {exc}")
+
+    target.__name__ = func.__name__
+    return target

@@ -1,0 +1,403 @@
+"""A small stand-in for CloudCompare's ``pycc`` module, for testing the plugin adapter.
+
+It implements exactly the calls the plugin and scripts use, as documented by the
+CloudCompare-PythonRuntime bindings (``ccPointCloud``, ``ccScalarField``, ``ccPolyline``,
+``ccGLMatrix``, ``ccProgressDialog``, ``ccColorScalesManager``, ``RunInThread``,
+``GetInstance``/``GetCmdLineInstance``, ``PythonPluginInterface``, ``Action``) and nothing
+more: an attribute the real module lacks is not here either, and a call the adapter makes that
+is missing here fails the tests. It is NOT the real runtime: what passes here was verified
+against the documented API only. Behaviour copied from the bindings:
+
+* ``ccPointCloud(x, y, z)`` copies float32 local coordinates; ``points()`` is a read-only
+  (N, 3) float32 view; ``getPoint(i)`` returns an object with ``.x .y .z``.
+* ``addScalarField(name, values)`` raises RuntimeError if the name exists and ValueError on a
+  length mismatch; ``getScalarFieldIndexByName`` gives -1 for a missing name.
+* ``getGlobalShift()`` returns a vector with ``.x .y .z``; ``getGlobalScale()`` a float.
+* ``ccGLMatrix().asArray()`` is a writable (4, 4) float32 view of column-major storage.
+
+Switches for the known runtime quirks: ``BROKEN_POINTS`` (``points()`` returns N copies of
+the first row, runtime issues #124/#142/#152) and ``SCALE_GETTER_BUG`` (``getGlobalScale``
+bound to the setter in some builds).
+"""
+
+from __future__ import annotations
+
+import types
+from typing import Any
+
+import numpy as np
+
+PointCoordinateType = np.float32
+ScalarType = np.float32
+
+BROKEN_POINTS = False
+SCALE_GETTER_BUG = False
+
+
+class CCVector3d:
+    def __init__(self, x: float = 0.0, y: float = 0.0, z: float = 0.0) -> None:
+        self.x, self.y, self.z = float(x), float(y), float(z)
+
+
+CCVector3 = CCVector3d
+
+
+class Rgb:
+    def __init__(self, r: int, g: int, b: int) -> None:
+        self.r, self.g, self.b = r, g, b
+
+
+class ccColorScale:  # noqa: N801 - the binding's name
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+
+class ccColorScalesManager:  # noqa: N801
+    BWR = "BWR"
+    BGYR = "BGYR"
+
+    @staticmethod
+    def GetDefaultScale(scale: str = "BGYR") -> ccColorScale:  # noqa: N802
+        return ccColorScale(scale)
+
+
+class ccScalarField:  # noqa: N801
+    def __init__(self, name: str, n: int) -> None:
+        self._name = name
+        self._values = np.zeros(n, dtype=np.float32)
+        self._min = self._max = 0.0
+        self.color_scale: ccColorScale | None = None
+        self.symmetrical = False
+        self.saturation = [None, None]
+        self.displayed = [None, None]
+
+    def getName(self) -> str:  # noqa: N802
+        return self._name
+
+    def computeMinAndMax(self) -> None:  # noqa: N802
+        v = self._values[np.isfinite(self._values)]
+        self._min, self._max = (float(v.min()), float(v.max())) if v.size else (0.0, 0.0)
+
+    def getMin(self) -> float:  # noqa: N802
+        return self._min
+
+    def getMax(self) -> float:  # noqa: N802
+        return self._max
+
+    def toArray(self) -> np.ndarray:  # noqa: N802
+        return self._values.copy()
+
+    def setColorScale(self, scale: ccColorScale) -> None:  # noqa: N802
+        self.color_scale = scale
+
+    def setSymmetricalScale(self, state: bool) -> None:  # noqa: N802
+        self.symmetrical = bool(state)
+
+    def setSaturationStart(self, value: float) -> None:  # noqa: N802
+        self.saturation[0] = float(value)
+
+    def setSaturationStop(self, value: float) -> None:  # noqa: N802
+        self.saturation[1] = float(value)
+
+    def setMinDisplayed(self, value: float) -> None:  # noqa: N802
+        self.displayed[0] = float(value)
+
+    def setMaxDisplayed(self, value: float) -> None:  # noqa: N802
+        self.displayed[1] = float(value)
+
+
+class ccHObject:  # noqa: N801
+    def __init__(self, name: str = "") -> None:
+        self._name = name
+        self.children: list[Any] = []
+        self.enabled = True
+        self._shift = np.zeros(3)
+        self._scale = 1.0
+
+    def getName(self) -> str:  # noqa: N802
+        return self._name
+
+    def setName(self, name: str) -> None:  # noqa: N802
+        self._name = str(name)
+
+    def setEnabled(self, state: bool) -> None:  # noqa: N802
+        self.enabled = bool(state)
+
+    def addChild(self, child: Any) -> None:  # noqa: N802
+        self.children.append(child)
+
+    # ccShiftedObject
+    def getGlobalShift(self) -> CCVector3d:  # noqa: N802
+        return CCVector3d(*self._shift)
+
+    def setGlobalShift(self, x: float, y: float, z: float) -> None:  # noqa: N802
+        self._shift = np.array([x, y, z], dtype=np.float64)
+
+    def setGlobalScale(self, scale: float) -> None:  # noqa: N802
+        self._scale = float(scale)
+
+    def getGlobalScale(self, *args: Any) -> Any:  # noqa: N802
+        if SCALE_GETTER_BUG:  # bound to the setter: needs an argument, returns None
+            if len(args) != 1:
+                raise TypeError("getGlobalScale(): incompatible function arguments")
+            self._scale = float(args[0])
+            return None
+        if args:
+            raise TypeError("getGlobalScale() takes no arguments")
+        return self._scale
+
+    def isShifted(self) -> bool:  # noqa: N802
+        return bool(np.any(self._shift != 0) or self._scale != 1.0)
+
+    def copyGlobalShiftAndScale(self, other: Any) -> None:  # noqa: N802
+        self._shift = other._shift.copy()
+        self._scale = other._scale
+
+
+class ccGLMatrix:  # noqa: N801
+    def __init__(self) -> None:
+        self._data = np.eye(4, dtype=np.float32).ravel(order="F").copy()
+
+    def asArray(self) -> np.ndarray:  # noqa: N802
+        return self._data.reshape(4, 4)  # row i of this view = column i of the matrix
+
+    def matrix(self) -> np.ndarray:
+        """Test helper (not in the binding): the matrix in row-major form."""
+        return self._data.reshape(4, 4).T.astype(np.float64)
+
+
+class ccPointCloud(ccHObject):  # noqa: N801
+    def __init__(self, *args: Any) -> None:
+        if len(args) == 3:
+            super().__init__("")
+            self._xyz = np.stack([np.asarray(a, dtype=np.float32) for a in args], axis=1)
+        else:
+            super().__init__(args[0] if args else "")
+            self._xyz = np.empty((0, 3), dtype=np.float32)
+        self._sfs: list[ccScalarField] = []
+        self.displayed_sf = -1
+        self.sf_shown = False
+        self.sf_scale_shown = False
+
+    def size(self) -> int:
+        return int(self._xyz.shape[0])
+
+    def __len__(self) -> int:
+        return self.size()
+
+    def points(self) -> np.ndarray:
+        view = self._xyz.view()
+        if BROKEN_POINTS and len(view):
+            view = np.broadcast_to(self._xyz[0], self._xyz.shape)
+        view = view.view()
+        view.flags.writeable = False
+        return view
+
+    def getPoint(self, index: int) -> CCVector3d:  # noqa: N802
+        return CCVector3d(*self._xyz[int(index)])
+
+    def addScalarField(self, name: str, values: Any = None) -> int:  # noqa: N802
+        if self.getScalarFieldIndexByName(name) >= 0:
+            raise RuntimeError("Failed to add scalar field")
+        sf = ccScalarField(name, self.size())
+        if values is not None:
+            v = np.asarray(values, dtype=ScalarType)
+            if v.size != self.size():
+                raise ValueError("value must have the same len as the point cloud size")
+            sf._values[:] = v
+        self._sfs.append(sf)
+        return len(self._sfs) - 1
+
+    def getNumberOfScalarFields(self) -> int:  # noqa: N802
+        return len(self._sfs)
+
+    def getScalarField(self, index: int) -> ccScalarField | None:  # noqa: N802
+        return self._sfs[index] if 0 <= index < len(self._sfs) else None
+
+    def getScalarFieldName(self, index: int) -> str:  # noqa: N802
+        return self._sfs[index].getName()
+
+    def getScalarFieldIndexByName(self, name: str) -> int:  # noqa: N802
+        for i, sf in enumerate(self._sfs):
+            if sf.getName() == name:
+                return i
+        return -1
+
+    def deleteScalarField(self, index: int) -> None:  # noqa: N802
+        del self._sfs[index]
+        if self.displayed_sf == index:
+            self.displayed_sf = -1
+
+    def setCurrentDisplayedScalarField(self, index: int) -> None:  # noqa: N802
+        self.displayed_sf = int(index)
+
+    def getCurrentDisplayedScalarFieldIndex(self) -> int:  # noqa: N802
+        return self.displayed_sf
+
+    def showSF(self, state: bool) -> None:  # noqa: N802
+        self.sf_shown = bool(state)
+
+    def showSFColorsScale(self, state: bool) -> None:  # noqa: N802
+        self.sf_scale_shown = bool(state)
+
+    def applyGLTransformation_recursive(self, trans: ccGLMatrix) -> None:  # noqa: N802
+        m = trans.matrix()
+        xyz = self._xyz.astype(np.float64) @ m[:3, :3].T + m[:3, 3]
+        self._xyz = xyz.astype(np.float32)
+
+
+class ccPolyline(ccHObject):  # noqa: N801
+    def __init__(self, cloud: ccPointCloud) -> None:
+        super().__init__("")
+        self.cloud = cloud
+        self.indices: list[int] = []
+        self.closed = True
+        self.colour: Rgb | None = None
+        self.colours_shown = False
+
+    def addPointIndex(self, first: int, last: int | None = None) -> None:  # noqa: N802
+        if last is None:
+            self.indices.append(int(first))
+        else:
+            self.indices.extend(range(int(first), int(last)))
+
+    def size(self) -> int:
+        return len(self.indices)
+
+    def setClosed(self, state: bool) -> None:  # noqa: N802
+        self.closed = bool(state)
+
+    def setColor(self, col: Rgb) -> None:  # noqa: N802
+        self.colour = col
+
+    def showColors(self, state: bool) -> None:  # noqa: N802
+        self.colours_shown = bool(state)
+
+
+class ccProgressDialog:  # noqa: N801
+    def __init__(self, cancelButton: bool = False) -> None:  # noqa: N803
+        self.cancel_button = cancelButton
+        self.values: list[float] = []
+        self.started = self.stopped = False
+        self.cancel_after: int | None = None  # test switch: press Cancel after n updates
+        self.title = self.info = ""
+
+    def start(self) -> None:
+        self.started = True
+
+    def stop(self) -> None:
+        self.stopped = True
+
+    def setMethodTitle(self, title: str) -> None:  # noqa: N802
+        self.title = title
+
+    def setInfo(self, info: str) -> None:  # noqa: N802
+        self.info = info
+
+    def update(self, percent: float) -> None:
+        self.values.append(float(percent))
+
+    def isCancelRequested(self) -> bool:  # noqa: N802
+        return self.cancel_after is not None and len(self.values) >= self.cancel_after
+
+
+def RunInThread(func: Any, *args: Any, **kwargs: Any) -> Any:  # noqa: N802
+    """The real one runs ``func`` in a QtConcurrent thread and waits; same result here."""
+    import threading
+
+    out: dict[str, Any] = {}
+
+    def run() -> None:
+        out["value"] = func(*args, **kwargs)
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join()
+    return out.get("value")
+
+
+class ccPythonInstance:  # noqa: N801
+    def __init__(self) -> None:
+        self.selected: list[Any] = []
+        self.db: list[Any] = []
+        self.frozen: list[bool] = []
+        self.redraws = 0
+
+    def getSelectedEntities(self) -> list[Any]:  # noqa: N802
+        return list(self.selected)
+
+    def haveSelection(self) -> bool:  # noqa: N802
+        return bool(self.selected)
+
+    def addToDB(self, obj: Any, *args: Any, **kwargs: Any) -> None:  # noqa: N802
+        self.db.append(obj)
+
+    def updateUI(self) -> None:  # noqa: N802
+        pass
+
+    def redrawAll(self, only2D: bool = False) -> None:  # noqa: N802, N803
+        self.redraws += 1
+
+    def freezeUI(self, state: bool) -> None:  # noqa: N802
+        self.frozen.append(bool(state))
+
+
+class CLCloudDesc:
+    def __init__(self, pc: ccPointCloud, path: str = "", basename: str = "") -> None:
+        self.pc = pc
+        self.path = path
+        self.basename = basename
+
+
+class ccCommandLineInterface:  # noqa: N801
+    def __init__(self, clouds: list[CLCloudDesc] | None = None) -> None:
+        self._clouds = clouds or []
+
+    def clouds(self) -> list[CLCloudDesc]:
+        return self._clouds
+
+
+_GUI: ccPythonInstance | None = ccPythonInstance()
+_CMDLINE: ccCommandLineInterface | None = None
+
+
+def GetInstance() -> Any:  # noqa: N802
+    return _GUI if _GUI is not None else _CMDLINE
+
+
+def GetGUIInstance() -> ccPythonInstance | None:  # noqa: N802
+    return _GUI
+
+
+def GetCmdLineInstance() -> ccCommandLineInterface | None:  # noqa: N802
+    return _CMDLINE
+
+
+class PythonPluginInterface:
+    def __init__(self) -> None:
+        pass
+
+
+class Action:
+    def __init__(self, name: str, target: Any, icon: Any = None) -> None:
+        self.name, self.target, self.icon = name, target, icon
+
+
+class ccLog:  # noqa: N801
+    messages: list[str] = []
+
+    @staticmethod
+    def Print(text: str) -> None:  # noqa: N802
+        ccLog.messages.append(str(text))
+
+
+def install() -> types.ModuleType:
+    """Test helper: reset the module state and return it (to put into ``sys.modules``)."""
+    import sys
+
+    mod = sys.modules[__name__]
+    mod.BROKEN_POINTS = False
+    mod.SCALE_GETTER_BUG = False
+    mod._GUI = ccPythonInstance()
+    mod._CMDLINE = None
+    return mod
