@@ -42,8 +42,11 @@ def _p(default: Any, source: str) -> Any:
 class SlicingConfig:
     """Cutting the cloud into cross-section slices along the axis (paper §3.1.1)."""
 
-    step: float = _p(0.5, "ours: 2 slices per metre; the paper shows slices 1 m apart (§4.1)")
-    thickness: float = _p(0.2, "ours: thick enough for ~1e3 points at handheld density")
+    step: float = _p(0.5, "ours: 2 slices per metre, twice the paper's 1 m (§4.1, Fig. 12) so "
+                          "the fit keeps enough centres where slices are rejected")
+    thickness: float = _p(0.2, "ours: 0.2 m holds ~1e3 points at handheld density (400 pts/m^2 "
+                               "x 17 m perimeter x 0.2 m) while a 1/120 m^-1 bend moves the "
+                               "wall by < 0.1 mm across it")
     min_points: int = _p(200, "ours: fewer points than this and a slice is rejected")
 
 
@@ -52,10 +55,29 @@ class CenterlineConfig:
     """Roof/floor lines, wall lines and the NURBS centreline (paper §3.1.2-3.1.4)."""
 
     kde_bandwidth: float = _p(0.1, "paper §4.1, Fig. 13: Gaussian KDE window 0.1 m")
+    refine_bandwidth: float = _p(0.02, "ours: narrow KDE that refines a line within the paper's "
+                                       "window (removes the bias of the wide window, ~1 cm)")
+    min_peak_share: float = _p(0.05, "ours: a roof/floor peak must hold >= 5% of the slice's "
+                                     "points within +-kde_bandwidth (noise, cables do not)")
     grid_cell: float = _p(0.02, "ours: pixel of the 2-D linear-kernel density image, m")
+    wall_kernel: float = _p(0.04, "ours: half-width of the linear kernel (paper eq. 3) across "
+                                  "the axis, m; along it a quarter of the slice thickness")
+    wall_band_low: float = _p(0.15, "ours: walls are read above floor + 15% of the height")
+    wall_band_high: float = _p(0.6, "ours: ... and below floor + 60% (arch springing, roof "
+                                    "equipment and pipes under the roof stay out)")
+    max_wall_angle_deg: float = _p(20.0, "ours: Hough lines within 20 deg of the axis only")
+    hough_peak_ratio: float = _p(0.3, "ours: Hough peaks below 30% of the strongest are ignored")
+    max_width_jump: float = _p(0.3, "ours: a slice wider than its neighbours' median by more "
+                                    "than this is a chamber/niche and is rejected, m")
+    max_height_jump: float = _p(0.3, "ours: same for the height (missing floor/roof), m")
+    neighbour_window: float = _p(10.0, "ours: neighbours within +-10 m give the median, m")
     degree: int = _p(3, "paper §3.1.4: cubic NURBS")
+    ctrl_spacing: float = _p(2.0, "ours: about one control point per 2 m: fewer control points "
+                                  "than centres, so the least-squares curve smooths their noise")
     sample_step: float = _p(0.05, "ours: spacing of centreline samples, m")
     max_iterations: int = _p(3, "ours: re-slicing passes normal to the curve (curved tunnels)")
+    converge_tol: float = _p(0.005, "ours: stop re-slicing when the curve moves less, m")
+    min_slices: int = _p(5, "ours: fewer accepted slices and there is no centreline")
     vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)")
 
 

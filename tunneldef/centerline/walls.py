@@ -1,0 +1,239 @@
+"""Wall lines of a slice from its top view (paper §3.1.3, Fig. 4, Fig. 14).
+
+Steps (paper §3.1.3, with the guards a cluttered mine needs):
+
+1. Keep the points in the band of heights where the section is wall (between the floor and roof
+   lines and away from both), so the roof, floor, arch, roof bolts and pipes under the roof do
+   not enter the top view.
+2. Rasterise the top view (along-axis u, lateral v) into an n x n grid. Rows are lateral
+   (left = +v at the top, as in the paper's Fig. 4), columns span the slice thickness, so the
+   slice is magnified along the axis as in the paper.
+3. Smooth the counts with the linear kernel K(x) = 1 - |x| (paper eq. 3), separably in both
+   directions (``scipy.ndimage.convolve1d``).
+4. Canny edges (``skimage.feature.canny``), then the Hough line transform
+   (``skimage.transform.hough_line``) restricted to lines within ``max_angle_deg`` of the axis.
+5. The first line from the top is the left wall, the last the right wall (outermost strong
+   lines: equipment hangs inside the walls). Each is refined to the mode of the lateral offsets
+   of the points near it (narrow kernel density), since Canny marks the *edge* of the wall's
+   density ridge, a few centimetres outside the wall.
+
+If no Hough line qualifies, a 1-D density of the lateral offsets gives the first and last
+significant peaks instead (method ``"fallback"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import convolve1d, gaussian_filter, sobel
+from skimage.feature import canny
+from skimage.transform import hough_line, hough_line_peaks
+
+from .roof_floor import kernel_density_1d, refine_peak
+
+__all__ = ["WallLines", "wall_lines", "linear_kernel_density"]
+
+HOUGH = "hough"
+FALLBACK = "fallback"
+_MAX_PIXELS = 800
+
+
+@dataclass(frozen=True)
+class WallLines:
+    """Left and right wall lines of one slice (lateral offsets at the station, metres).
+
+    Attributes
+    ----------
+    left, right : float
+        Lateral position of the left (+v) and right (-v) wall at the station; NaN if missing.
+    left_slope, right_slope : float
+        dv/du of each line (0 for an axis-parallel wall).
+    method : str
+        ``"hough"``, ``"fallback"`` or ``""`` (not found).
+    reason : str
+        Why the walls are missing ("" when found).
+    image : ndarray, shape (n, n)
+        Linear-kernel density of the top view (max 1), rows from +v (top) to -v.
+    edges : ndarray of bool, shape (n, n)
+        Canny edges of ``image``.
+    extent : tuple of float
+        (u_min, u_max, v_min, v_max) of the image, metres.
+    lines : ndarray, shape (L, 2)
+        Every accepted Hough line as (v at the station, slope), top first.
+    """
+
+    left: float
+    right: float
+    left_slope: float
+    right_slope: float
+    method: str
+    reason: str
+    image: np.ndarray
+    edges: np.ndarray
+    extent: tuple[float, float, float, float]
+    lines: np.ndarray
+
+    @property
+    def ok(self) -> bool:
+        return not self.reason
+
+
+def _triangle(half_width: int) -> np.ndarray:
+    """Linear kernel K(x) = 1 - |x| (paper eq. 3) sampled at integer offsets, |x| = i / h."""
+    i = np.arange(-half_width, half_width + 1)
+    k = 1.0 - np.abs(i) / (half_width + 1.0)
+    return k / k.sum()
+
+
+def linear_kernel_density(counts: np.ndarray, *, half_widths: tuple[int, int]) -> np.ndarray:
+    """2-D linear-kernel density of a count image, separable (rows, then columns).
+
+    Parameters
+    ----------
+    counts : ndarray, shape (R, C)
+        Points per pixel.
+    half_widths : (int, int)
+        Kernel half-widths in pixels along rows (axis 0) and columns (axis 1).
+    """
+    img = convolve1d(counts.astype(np.float64), _triangle(half_widths[0]), axis=0, mode="constant")
+    return convolve1d(img, _triangle(half_widths[1]), axis=1, mode="constant")
+
+
+def _hough_lines(edges: np.ndarray, *, max_slope_px: float, peak_ratio: float) -> np.ndarray:
+    """Near-horizontal Hough lines of an edge image as (row at the centre column, drow/dcol)."""
+    n_rows, n_cols = edges.shape
+    a = max(np.arctan(max_slope_px), 2.0 / n_cols)
+    n_angles = int(np.clip(np.ceil(2 * a * n_cols), 3, 61))
+    theta = np.pi / 2 + np.linspace(-a, a, n_angles)
+    h, angles, dists = hough_line(edges, theta=theta)
+    if h.max() == 0:
+        return np.empty((0, 2))
+    _, ang, dist = hough_line_peaks(
+        h,
+        angles,
+        dists,
+        min_distance=2,
+        min_angle=n_angles,
+        threshold=peak_ratio * h.max(),
+        num_peaks=40,
+    )
+    xc = (n_cols - 1) / 2.0
+    rows = (dist - xc * np.cos(ang)) / np.sin(ang)
+    slopes = -np.cos(ang) / np.sin(ang)
+    out = np.stack([rows, slopes], axis=1)
+    return out[np.argsort(out[:, 0])]
+
+
+def _fallback(v: np.ndarray, *, bandwidth: float, min_share: float) -> tuple[float, float] | None:
+    grid, dens = kernel_density_1d(v, bandwidth=bandwidth)
+    from scipy.signal import find_peaks
+
+    idx, _ = find_peaks(dens, prominence=0.05 * dens.max())
+    if idx.size < 2:
+        return None
+    vs = np.sort(v)
+    p = grid[idx]
+    share = (np.searchsorted(vs, p + bandwidth) - np.searchsorted(vs, p - bandwidth)) / v.size
+    p = p[share >= min_share]
+    return (float(p[-1]), float(p[0])) if p.size >= 2 else None
+
+
+def wall_lines(
+    u: np.ndarray,
+    v: np.ndarray,
+    *,
+    station: float,
+    thickness: float,
+    grid_cell: float = 0.02,
+    kernel_half_width: float = 0.04,
+    max_angle_deg: float = 20.0,
+    peak_ratio: float = 0.3,
+    refine_bandwidth: float = 0.02,
+    min_width: float = 0.5,
+) -> WallLines:
+    """Left and right wall lines of one slice from the top view of its wall band.
+
+    Parameters
+    ----------
+    u, v : ndarray, shape (N,)
+        Along-axis and lateral (positive left) coordinates of the slice's wall-band points,
+        metres.
+    station : float
+        Along-axis position of the slice centre, metres.
+    thickness : float
+        Slice thickness, metres (the image spans ``station +- thickness / 2``).
+    grid_cell : float
+        Lateral pixel size, metres; the image is n x n with n = lateral extent / grid_cell.
+    kernel_half_width : float
+        Lateral half-width of the linear kernel (paper eq. 3), metres; along the axis the
+        half-width is a quarter of the thickness.
+    max_angle_deg : float
+        Only lines within this angle of the axis are walls (real-space degrees).
+    peak_ratio : float
+        Hough peaks below this fraction of the strongest are ignored.
+    refine_bandwidth : float
+        Narrow kernel that refines each line to the mode of its points' lateral offsets, m.
+    min_width : float
+        Two lines closer than this are one wall seen twice (the other wall is missing), m.
+
+    Returns
+    -------
+    WallLines
+    """
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    empty_img = np.zeros((0, 0))
+    if v.size < 10:
+        return WallLines(
+            np.nan,
+            np.nan,
+            0.0,
+            0.0,
+            "",
+            "too few points in the wall band",
+            empty_img,
+            empty_img.astype(bool),
+            (0, 0, 0, 0),
+            np.empty((0, 2)),
+        )
+    lo, hi = np.quantile(v, [0.001, 0.999])
+    margin = 4 * kernel_half_width + 5 * grid_cell
+    v_min, v_max = lo - margin, hi + margin
+    cell = max(grid_cell, (v_max - v_min) / _MAX_PIXELS)
+    n = int(np.ceil((v_max - v_min) / cell))
+    v_max = v_min + n * cell
+    u_min, u_max = station - thickness / 2, station + thickness / 2
+    cell_u = thickness / n
+    counts, _, _ = np.histogram2d(-v, u, bins=(n, n), range=((-v_max, -v_min), (u_min, u_max)))
+    half = (max(1, round(kernel_half_width / cell)), max(1, n // 4))
+    image = linear_kernel_density(counts, half_widths=half)
+    image /= max(image.max(), 1e-300)
+    grad = np.hypot(sobel(gaussian_filter(image, 1.0), 0), sobel(gaussian_filter(image, 1.0), 1))
+    gmax = float(grad.max())
+    edges = canny(image, sigma=1.0, low_threshold=0.1 * gmax, high_threshold=0.25 * gmax)
+    max_slope_px = np.tan(np.radians(max_angle_deg)) * cell_u / cell
+    lines_px = _hough_lines(edges, max_slope_px=max_slope_px, peak_ratio=peak_ratio)
+    # pixel (row, drow/dcol) -> (v at the station, dv/du)
+    lines = (
+        np.stack([v_max - (lines_px[:, 0] + 0.5) * cell, -lines_px[:, 1] * cell / cell_u], axis=1)
+        if len(lines_px)
+        else np.empty((0, 2))
+    )
+    extent = (u_min, u_max, v_min, v_max)
+    window = kernel_half_width + 3 * cell
+    if len(lines) >= 2:
+        out = []
+        for v0, slope in (lines[0], lines[-1]):
+            r = v - slope * (u - station)
+            out.append((refine_peak(r, v0, window=window, bandwidth=refine_bandwidth), slope))
+        (left, ls), (right, rs) = out
+        if left - right >= min_width:
+            return WallLines(left, right, ls, rs, HOUGH, "", image, edges, extent, lines)
+    fb = _fallback(v, bandwidth=kernel_half_width, min_share=0.05)
+    if fb is not None and fb[0] - fb[1] >= min_width:
+        left = refine_peak(v, fb[0], window=window, bandwidth=refine_bandwidth)
+        right = refine_peak(v, fb[1], window=window, bandwidth=refine_bandwidth)
+        return WallLines(left, right, 0.0, 0.0, FALLBACK, "", image, edges, extent, lines)
+    reason = "no wall line" if len(lines) == 0 else "only one wall found (the other is missing)"
+    return WallLines(np.nan, np.nan, 0.0, 0.0, "", reason, image, edges, extent, lines)
