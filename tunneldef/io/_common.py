@@ -71,8 +71,7 @@ def storable(name: str, values: np.ndarray, allowed: tuple[str, ...]) -> np.ndar
         info = np.iinfo(cand)
         if cand in allowed and info.min <= lo and hi <= info.max:
             return values.astype(cand)
-    logger.warning("field %r (%s) does not fit the format's integers; written as float64", name,
-                   dt)
+    logger.warning("field %r (%s) does not fit the format's integers; written as float64", name, dt)
     return values.astype(np.float64)
 
 
@@ -82,8 +81,9 @@ def safe_name(name: str) -> str:
     if not clean:
         raise InvalidCloudError("a field has an empty name; give every field a name")
     if clean != name:
-        logger.warning("field name %r written as %r (no spaces allowed in this format)", name,
-                       clean)
+        logger.warning(
+            "field name %r written as %r (no spaces allowed in this format)", name, clean
+        )
     return clean
 
 

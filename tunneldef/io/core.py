@@ -93,8 +93,13 @@ def read(path: str | os.PathLike[str], *, strict: bool = False) -> Cloud:
     cloud = _drop_nonfinite(cloud, p, strict=strict)
     if len(cloud) == 0:
         raise InvalidCloudError(f"{p} holds no points; choose a file with a point cloud in it")
-    logger.info("read %s: %d points, %d fields in %.2f s", p, len(cloud), len(cloud.fields),
-                time.perf_counter() - start)
+    logger.info(
+        "read %s: %d points, %d fields in %.2f s",
+        p,
+        len(cloud),
+        len(cloud.fields),
+        time.perf_counter() - start,
+    )
     return cloud
 
 
@@ -188,8 +193,13 @@ def write(
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
-    logger.info("wrote %s: %d points, %d fields in %.2f s", p, len(xyz), len(selected),
-                time.perf_counter() - start)
+    logger.info(
+        "wrote %s: %d points, %d fields in %.2f s",
+        p,
+        len(xyz),
+        len(selected),
+        time.perf_counter() - start,
+    )
 
 
 def _set_mode(tmp: Path, target: Path) -> None:

@@ -70,8 +70,12 @@ def read(path: Path) -> Cloud:
         if dim.name in ("X", "Y", "Z"):
             continue
         if dim.num_elements != 1:
-            logger.warning("%s: extra dimension %r has %d values per point; not read", path,
-                           dim.name, dim.num_elements)
+            logger.warning(
+                "%s: extra dimension %r has %d values per point; not read",
+                path,
+                dim.name,
+                dim.num_elements,
+            )
             continue
         fields[dim.name] = np.ascontiguousarray(las[dim.name])
     return Cloud(xyz, fields, {"las_header": header})
@@ -116,8 +120,9 @@ def _header_from_source(
         old = old_extra.get(name)
         if old is not None and _fits(values, old):
             params.append(
-                laspy.ExtraBytesParams(name, old.dtype, old.description, old.offsets,
-                                       old.scales, old.no_data)
+                laspy.ExtraBytesParams(
+                    name, old.dtype, old.description, old.offsets, old.scales, old.no_data
+                )
             )
         else:
             targets[name] = _extra_name(name, standard)
@@ -154,8 +159,11 @@ def _extra_name(name: str, standard: set[str]) -> str:
     extra = name
     if name in standard or name.lower() in ("x", "y", "z"):
         extra = f"{name}_value"
-        logger.warning("field %r does not fit the LAS dimension of that name; written as extra "
-                       "bytes %r", name, extra)
+        logger.warning(
+            "field %r does not fit the LAS dimension of that name; written as extra bytes %r",
+            name,
+            extra,
+        )
     if len(extra.encode()) > 32:
         raise InvalidCloudError(
             f"field name {extra!r} is longer than the 32 bytes LAS extra bytes allow; rename it"
@@ -233,8 +241,7 @@ def _fit_offsets(header: laspy.LasHeader, xyz: np.ndarray) -> None:
     if overflow.any():
         offsets = np.array(header.offsets, dtype=np.float64)
         offsets[overflow] = np.floor(xyz.min(axis=0)[overflow])
-        logger.info("LAS offsets %s do not fit the coordinates; using %s", header.offsets,
-                    offsets)
+        logger.info("LAS offsets %s do not fit the coordinates; using %s", header.offsets, offsets)
         header.offsets = offsets
         span = (xyz.max(axis=0) - offsets) / header.scales
         if (span > _INT32.max - 1).any():

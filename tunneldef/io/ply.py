@@ -61,7 +61,7 @@ def read(path: Path) -> Cloud:
             continue
         name = prop
         if prop.startswith(SCALAR_PREFIX) and len(prop) > len(SCALAR_PREFIX):
-            name = prop[len(SCALAR_PREFIX):]
+            name = prop[len(SCALAR_PREFIX) :]
             if name in prop_names or name in ("x", "y", "z"):
                 name = prop
         values = np.asarray(data[prop])
