@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -94,3 +95,12 @@ def text_format(values: np.ndarray) -> str:
     if values.dtype == np.float32:
         return "%.9g"
     return "%.17g"
+
+
+def write_table(stream: Any, columns: list[np.ndarray], fmt: list[str], delimiter: str) -> None:
+    """Write (N,) columns of mixed types as text rows, exact for ints, float32 and float64."""
+    n = columns[0].shape[0]
+    table = np.empty((n, len(columns)), dtype=object)
+    for k, values in enumerate(columns):
+        table[:, k] = values.astype(np.int64) if values.dtype.kind in "uib" else values
+    np.savetxt(stream, table, fmt=fmt, delimiter=delimiter)
