@@ -1,0 +1,273 @@
+"""Deformation between two registered epochs: per point, per section, and danger zones.
+
+Contents
+--------
+compute_deformation
+    Per-point signed deformation of the compared epoch against the reference (the paper's KNN
+    centroid, §3.3.1, or the robust local-surface estimator), split into horizontal and
+    vertical components relative to the centreline (§3.3.2).
+DeformationResult
+    Its per-point arrays and the fields to write.
+section_statistics, write_sections_csv
+    Statistics of cross-sections along the chainage (paper Table 4).
+danger_zones, danger_threshold, robust_peak
+    Danger classification and chainage intervals (paper §4.3, Fig. 22).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..centerline.curve import Centerline
+from ..cloud import check_points
+from ..config import Config
+from ..errors import ConfigError, InvalidCloudError
+from ..progress import ProgressCallback, report, timed_stage
+from .classify import danger_threshold, danger_zones, normal_component, robust_peak
+from .knn import knn_counterparts, manhattan_split
+from .sections import SURFACE_NAMES, section_statistics, surface_labels, write_sections_csv
+
+__all__ = [
+    "compute_deformation",
+    "DeformationResult",
+    "section_statistics",
+    "write_sections_csv",
+    "danger_zones",
+    "danger_threshold",
+    "robust_peak",
+    "normal_component",
+    "surface_labels",
+    "SURFACE_NAMES",
+]
+
+logger = logging.getLogger(__name__)
+
+METHODS = ("knn", "robust")
+
+
+@dataclass(frozen=True)
+class DeformationResult:
+    """Per-point deformation of the compared epoch (all arrays shape (N,), compared order).
+
+    Attributes
+    ----------
+    deformation : float64, metres
+        Signed deformation: negative = the surface moved into the tunnel (roof sag, wall bulge,
+        floor heave), positive = outward. ``knn``: the distance to the KNN-centroid
+        counterpart (paper §3.3.1), signed by the section deformation ``horizontal +
+        vertical``.
+    horizontal, vertical : float64, metres
+        Change of |lateral| and |vertical| distance to the centreline between the counterpart
+        and the point (paper §3.3.2, Manhattan split); negative = towards the centreline.
+    chainage : float64, metres
+        Chainage of each point on the reference centreline.
+    surface : uint8
+        0 roof, 1 left wall, 2 right wall, 3 floor (:data:`SURFACE_NAMES`).
+    shell : bool
+        True on the tunnel shell; False on equipment, conveyor, coal, people, outliers.
+    xyz : float64, shape (N, 3)
+        The compared points (reference frame) the values belong to; used for smoothing.
+    method : str
+        ``"knn"`` or ``"robust"``.
+    k : int or None
+        Neighbours of the KNN centroid (``knn`` only).
+    significant, lod95 : optional
+        ``robust`` only: change beyond the 95 % level of detection, and that level (m).
+    centerline_length : float or None
+        Length of the reference centreline, metres.
+    """
+
+    deformation: np.ndarray
+    horizontal: np.ndarray
+    vertical: np.ndarray
+    chainage: np.ndarray
+    surface: np.ndarray
+    shell: np.ndarray
+    xyz: np.ndarray
+    method: str = "knn"
+    k: int | None = None
+    significant: np.ndarray | None = None
+    lod95: np.ndarray | None = None
+    centerline_length: float | None = None
+
+    def __len__(self) -> int:
+        return int(self.deformation.shape[0])
+
+    def fields(self) -> dict[str, np.ndarray]:
+        """Per-point fields to write: float32 ``deformation``, ``deformation_horizontal``,
+        ``deformation_vertical``, ``chainage``; uint8 ``surface``, ``shell``; plus uint8
+        ``significant`` and float32 ``lod95`` when the robust estimator gave them."""
+        out = {
+            "deformation": self.deformation.astype(np.float32),
+            "deformation_horizontal": self.horizontal.astype(np.float32),
+            "deformation_vertical": self.vertical.astype(np.float32),
+            "chainage": self.chainage.astype(np.float32),
+            "surface": self.surface.astype(np.uint8),
+            "shell": self.shell.astype(np.uint8),
+        }
+        if self.significant is not None:
+            out["significant"] = np.asarray(self.significant).astype(np.uint8)
+        if self.lod95 is not None:
+            out["lod95"] = np.asarray(self.lod95).astype(np.float32)
+        return out
+
+
+def _shell_mask(xyz: np.ndarray, centerline: Centerline) -> np.ndarray | None:
+    """Shell mask from :mod:`tunneldef.deformation.shell`, or None where it is unavailable."""
+    try:
+        from .shell import classify_shell
+    except ImportError:
+        return None
+    return np.asarray(classify_shell(xyz, centerline), dtype=bool)
+
+
+def _robust_kwargs(cfg: object) -> dict[str, object]:
+    """Robust-estimator parameters present in the deformation config section."""
+    names = ("normal_radius", "cylinder_radius", "max_depth", "core_spacing")
+    return {n: getattr(cfg, n) for n in names if hasattr(cfg, n)}
+
+
+def compute_deformation(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    centerline: Centerline,
+    *,
+    method: str | None = None,
+    config: Config | None = None,
+    k: int | None = None,
+    shell: np.ndarray | None = None,
+    registration_sigma: float = 0.0,
+    workers: int = -1,
+    progress: ProgressCallback | None = None,
+) -> DeformationResult:
+    """Signed per-point deformation of a registered compared epoch against the reference.
+
+    Parameters
+    ----------
+    ref_xyz : ndarray, shape (M, 3)
+        Reference epoch, metres.
+    cmp_xyz : ndarray, shape (N, 3)
+        Compared epoch, registered into the reference frame, metres.
+    centerline : Centerline
+        The reference centreline (chainage, lateral/vertical offsets).
+    method : {"knn", "robust"}, optional
+        ``knn``: the paper's KNN-centroid distance (§3.3.1); ``robust``: the local-surface
+        estimator of :mod:`tunneldef.deformation.robust`. Default: ``config.deformation.method``.
+    config : Config, optional
+        Parameters (``deformation`` section); defaults to ``Config()``.
+    k : int, optional
+        Overrides ``config.deformation.k`` (paper Table 3: 3).
+    shell : ndarray of bool, shape (N,), optional
+        Precomputed shell mask; by default
+        :func:`tunneldef.deformation.shell.classify_shell` decides.
+    registration_sigma : float
+        ``robust`` only: standard uncertainty of the registration, metres, added to the level
+        of detection.
+    workers : int
+        Threads for KD-tree queries (-1: all cores).
+    progress : callable, optional
+        ``progress(stage, fraction)``.
+
+    Returns
+    -------
+    DeformationResult
+
+    Raises
+    ------
+    InvalidCloudError
+        If a cloud is empty or malformed, or ``k`` < 1.
+    ConfigError
+        If ``method`` is unknown.
+
+    Notes
+    -----
+    ``knn``: (1) counterpart = centroid of the k nearest reference points of each compared
+    point, (2) both projected on the centreline, (3) horizontal = change of |lateral|,
+    vertical = change of |vertical| (Manhattan split, Fig. 11), (4) deformation = distance to
+    the counterpart with the sign of ``horizontal + vertical`` (closer to the centreline than
+    the counterpart: negative). ``robust``: the estimator's signed normal distance, split into
+    horizontal and vertical parts along its normal.
+    """
+    config = config or Config()
+    dcfg = config.deformation
+    method = dcfg.method if method is None else method
+    if method not in METHODS:
+        raise ConfigError(f"unknown deformation method {method!r}; use one of {METHODS}")
+    cmp = check_points(cmp_xyz, name="compared cloud")
+    ref = check_points(ref_xyz, name="reference cloud")
+    k = dcfg.k if k is None else k
+    if shell is not None and np.shape(shell) != (cmp.shape[0],):
+        raise InvalidCloudError(
+            f"shell mask has shape {np.shape(shell)}, expected ({cmp.shape[0]},)"
+        )
+
+    def sub(lo: float, hi: float) -> ProgressCallback | None:
+        if progress is None:
+            return None
+        return lambda stage, f: progress(stage, lo + (hi - lo) * f)
+
+    with timed_stage(logger, f"deformation ({method}) of {cmp.shape[0]} points"):
+        report(progress, "deformation", 0.0)
+        if shell is None:
+            shell_mask = _shell_mask(cmp, centerline)
+            if shell_mask is None:
+                logger.warning("shell classification unavailable; every point counts as shell")
+                shell_mask = np.ones(cmp.shape[0], dtype=bool)
+        else:
+            shell_mask = np.asarray(shell, dtype=bool)
+        report(progress, "deformation", 0.1)
+        pp = centerline.project(cmp, workers=workers)
+        significant = lod95 = None
+        if method == "knn":
+            counterpart, dist = knn_counterparts(
+                ref, cmp, k=k, workers=workers, progress=sub(0.1, 0.85)
+            )
+            pc = centerline.project(counterpart, workers=workers)
+            horizontal, vertical = manhattan_split(pp, pc)
+            sign = np.where(horizontal + vertical < 0.0, -1.0, 1.0)
+            deformation = sign * dist
+        else:
+            from .robust import robust_deformation
+
+            r = robust_deformation(
+                ref,
+                cmp,
+                centerline,
+                ref_mask=_shell_mask(ref, centerline),
+                cmp_mask=shell_mask,
+                registration_sigma=registration_sigma,
+                workers=workers,
+                progress=sub(0.1, 0.85),
+                **_robust_kwargs(dcfg),
+            )
+            deformation = np.asarray(r.deformation, dtype=np.float64)
+            nrm = np.asarray(r.normal, dtype=np.float64)
+            _, lat_dir, ver_dir = centerline.frame_at(pp.chainage)
+            # the displacement vector deformation * normal, split into the changes of
+            # |lateral| and |vertical| (NaN where the estimator gave no value)
+            horizontal = deformation * np.einsum("ij,ij->i", nrm, lat_dir) * np.sign(pp.lateral)
+            vertical = deformation * np.einsum("ij,ij->i", nrm, ver_dir) * np.sign(pp.vertical)
+            significant = np.asarray(r.significant, dtype=bool)
+            lod95 = np.asarray(r.lod95, dtype=np.float64)
+            k = None
+        report(progress, "deformation", 0.9)
+        surface = surface_labels(pp.chainage, pp.lateral, pp.vertical, step=dcfg.section_step)
+        report(progress, "deformation", 1.0)
+
+    return DeformationResult(
+        deformation=deformation,
+        horizontal=horizontal,
+        vertical=vertical,
+        chainage=pp.chainage,
+        surface=surface,
+        shell=shell_mask,
+        xyz=cmp,
+        method=method,
+        k=k,
+        significant=significant,
+        lod95=lod95,
+        centerline_length=centerline.length,
+    )

@@ -1,0 +1,250 @@
+"""Per-section deformation statistics along the chainage (paper §3.3.2, §4.3, Table 4).
+
+Also the surface label of each point (roof, left wall, right wall, floor) from its position in
+the cross-section, used to split the statistics and to name danger zones.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..errors import ConfigError, InvalidCloudError
+
+if TYPE_CHECKING:
+    from . import DeformationResult
+
+__all__ = [
+    "SURFACE_NAMES",
+    "ROOF",
+    "LEFT_WALL",
+    "RIGHT_WALL",
+    "FLOOR",
+    "surface_labels",
+    "section_statistics",
+    "write_sections_csv",
+]
+
+logger = logging.getLogger(__name__)
+
+ROOF, LEFT_WALL, RIGHT_WALL, FLOOR = 0, 1, 2, 3
+#: Names of the surface codes 0..3 (same codes as ``tunneldef.synth`` truth).
+SURFACE_NAMES: tuple[str, ...] = ("roof", "left_wall", "right_wall", "floor")
+
+_EXTENT_QUANTILE = 0.95
+_MIN_EXTENT_POINTS = 30
+
+
+def _half_extents(values: np.ndarray, fallback: float) -> float:
+    if values.size < _MIN_EXTENT_POINTS:
+        return fallback
+    e = float(np.quantile(values, _EXTENT_QUANTILE))
+    return e if e > 1e-3 else fallback
+
+
+def surface_labels(
+    chainage: np.ndarray,
+    lateral: np.ndarray,
+    vertical: np.ndarray,
+    *,
+    step: float = 1.0,
+) -> np.ndarray:
+    """Surface of each point from its angle in the cross-section.
+
+    Parameters
+    ----------
+    chainage, lateral, vertical : ndarray, shape (N,)
+        Position relative to the centreline (``Centerline.project``), metres; ``lateral`` is
+        positive to the left, ``vertical`` positive up.
+    step : float
+        Length of the chainage bins in which the section's extents are measured, metres.
+
+    Returns
+    -------
+    ndarray, shape (N,), uint8
+        0 roof, 1 left wall, 2 right wall, 3 floor (:data:`SURFACE_NAMES`).
+
+    Notes
+    -----
+    In each chainage bin the half-width to the left and right and the half-height up and down
+    are the 95th percentiles of the positive offsets on each side (the whole cloud's when a bin
+    has too few points). Offsets are divided by the half-extent of their side; a point is on the
+    roof or floor when its normalised vertical offset exceeds its normalised lateral one, i.e.
+    the boundaries are the diagonals from the centre to the section's corners.
+    """
+    s = np.asarray(chainage, dtype=np.float64)
+    lat = np.asarray(lateral, dtype=np.float64)
+    ver = np.asarray(vertical, dtype=np.float64)
+    n = s.shape[0]
+    labels = np.empty(n, dtype=np.uint8)
+    if n == 0:
+        return labels
+    if not step > 0:
+        raise ConfigError(f"section step must be > 0 m, got {step!r}")
+    glob = [
+        _half_extents(lat[lat > 0], 1.0),
+        _half_extents(-lat[lat < 0], 1.0),
+        _half_extents(ver[ver > 0], 1.0),
+        _half_extents(-ver[ver < 0], 1.0),
+    ]
+    b = np.floor(s / step).astype(np.int64)
+    order = np.argsort(b, kind="stable")
+    bins, starts = np.unique(b[order], return_index=True)
+    ends = np.append(starts[1:], n)
+    # per-point half-extents (left, right, up, down)
+    ext = np.empty((n, 4))
+    for i0, i1 in zip(starts, ends, strict=True):
+        sel = order[i0:i1]
+        la, ve = lat[sel], ver[sel]
+        ext[sel] = [
+            _half_extents(la[la > 0], glob[0]),
+            _half_extents(-la[la < 0], glob[1]),
+            _half_extents(ve[ve > 0], glob[2]),
+            _half_extents(-ve[ve < 0], glob[3]),
+        ]
+    nl = np.where(lat >= 0, lat / ext[:, 0], -lat / ext[:, 1])
+    nv = np.where(ver >= 0, ver / ext[:, 2], -ver / ext[:, 3])
+    labels[:] = np.where(
+        nv >= nl,
+        np.where(ver >= 0, ROOF, FLOOR),
+        np.where(lat >= 0, LEFT_WALL, RIGHT_WALL),
+    )
+    return labels
+
+
+def _stats(prefix: str, v: np.ndarray) -> dict[str, float]:
+    if v.size == 0:
+        nan = math.nan
+        return {f"{prefix}mean": nan, f"{prefix}std": nan, f"{prefix}mean_abs": nan}
+    return {
+        f"{prefix}mean": float(v.mean()),
+        f"{prefix}std": float(v.std()),
+        f"{prefix}mean_abs": float(np.abs(v).mean()),
+    }
+
+
+def section_statistics(
+    d: DeformationResult,
+    *,
+    step: float = 1.0,
+    thickness: float = 0.2,
+    start: float | None = None,
+    stop: float | None = None,
+    shell_only: bool = True,
+) -> list[dict[str, Any]]:
+    """Deformation statistics of cross-sections along the chainage (paper Table 4 analogue).
+
+    Parameters
+    ----------
+    d : DeformationResult
+        Per-point deformation (:func:`tunneldef.deformation.compute_deformation`).
+    step : float
+        Distance between sections, metres (paper Table 4: 1 m).
+    thickness : float
+        A section holds the points within ``thickness / 2`` of its chainage, metres.
+    start, stop : float, optional
+        Chainage range of the sections (default: the points' range clipped to the
+        centreline, ``[0, length]``, at multiples of ``step``).
+    shell_only : bool
+        Compute the statistics on shell points only (equipment, coal, people left out).
+
+    Returns
+    -------
+    list of dict
+        One row per section with at least one point, in order of chainage, with keys
+        ``chainage``, ``n_points`` (all points), ``n_shell``, ``mean``, ``std``, ``mean_abs``,
+        ``min``, ``max`` (signed deformation, m), ``mean_horizontal``, ``mean_vertical``
+        (Manhattan components, m), and ``<surface>_n``, ``<surface>_mean``,
+        ``<surface>_std``, ``<surface>_mean_abs`` for roof, left_wall, right_wall, floor, plus
+        ``roof_mean_vertical``, ``floor_mean_vertical``, ``left_wall_mean_horizontal`` and
+        ``right_wall_mean_horizontal`` (the component along each surface's normal).
+
+    Raises
+    ------
+    ConfigError
+        If ``step`` or ``thickness`` is not positive.
+    InvalidCloudError
+        If ``d`` holds no points.
+    """
+    if not step > 0:
+        raise ConfigError(f"section step must be > 0 m, got {step!r}")
+    if not thickness > 0:
+        raise ConfigError(f"section thickness must be > 0 m, got {thickness!r}")
+    s = np.asarray(d.chainage, dtype=np.float64)
+    if s.size == 0:
+        raise InvalidCloudError("no points to compute section statistics on")
+    length = d.centerline_length
+    lo = float(s.min()) if start is None else float(start)
+    hi = float(s.max()) if stop is None else float(stop)
+    if start is None and length is not None:
+        lo = max(lo, 0.0)
+    if stop is None and length is not None:
+        hi = min(hi, length)
+    k0, k1 = math.ceil(lo / step - 1e-9), math.floor(hi / step + 1e-9)
+    order = np.argsort(s, kind="stable")
+    s_sorted = s[order]
+    half = thickness / 2.0
+    rows: list[dict[str, Any]] = []
+    for kk in range(k0, k1 + 1):
+        c = kk * step
+        i0 = np.searchsorted(s_sorted, c - half, side="left")
+        i1 = np.searchsorted(s_sorted, c + half, side="right")
+        sel = order[i0:i1]
+        if sel.size == 0:
+            continue
+        shell = d.shell[sel]
+        use = sel[shell] if shell_only else sel
+        v = d.deformation[use]
+        row: dict[str, Any] = {
+            "chainage": round(c, 9),
+            "n_points": int(sel.size),
+            "n_shell": int(shell.sum()),
+        }
+        row.update(_stats("", v))
+        row["min"] = float(v.min()) if v.size else math.nan
+        row["max"] = float(v.max()) if v.size else math.nan
+        h, ve = d.horizontal[use], d.vertical[use]
+        row["mean_horizontal"] = float(h.mean()) if v.size else math.nan
+        row["mean_vertical"] = float(ve.mean()) if v.size else math.nan
+        surf = d.surface[use]
+        for code, name in enumerate(SURFACE_NAMES):
+            m = surf == code
+            row[f"{name}_n"] = int(m.sum())
+            row.update(_stats(f"{name}_", v[m]))
+            comp = ve[m] if code in (ROOF, FLOOR) else h[m]
+            key = f"{name}_mean_vertical" if code in (ROOF, FLOOR) else f"{name}_mean_horizontal"
+            row[key] = float(comp.mean()) if comp.size else math.nan
+        rows.append(row)
+    logger.debug("section statistics: %d sections", len(rows))
+    return rows
+
+
+def write_sections_csv(rows: Sequence[dict[str, Any]], path: str | os.PathLike[str]) -> None:
+    """Write section rows as CSV (one row per section, columns in the first row's order).
+
+    The file is written to a temporary file in the same folder and renamed, so a reader never
+    sees a half-written table.
+    """
+    p = Path(path)
+    columns: list[str] = list(rows[0].keys()) if rows else ["chainage"]
+    for r in rows[1:]:
+        columns.extend(key for key in r if key not in columns)
+    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent or ".")
+    try:
+        with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
+            w = csv.DictWriter(f, fieldnames=columns, restval="")
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
