@@ -61,6 +61,8 @@ def read(path: Path) -> Cloud:
     header = las.header
     points = las.points
     n = len(points)
+    if n < header.point_count:
+        raise corrupt(path, f"the header announces {header.point_count} points, only {n} are there")
     xyz = np.empty((n, 3), dtype=np.float64)
     for axis, dim in enumerate("XYZ"):
         np.multiply(points.array[dim], header.scales[axis], out=xyz[:, axis])
