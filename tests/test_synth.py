@@ -325,4 +325,21 @@ def test_write_pair(tmp_path):
         xyz = np.stack([v["x"], v["y"], v["z"]], axis=1)
     else:
         xyz = read(paths["cmp"]).xyz
-    np.testing.assert_allclose(xyz, pair.cmp.xyz, atol=1e-6)
+    np.testing.assert_allclose(xyz, pair.cmp.xyz, atol=1e-4)  # float32 PLY coordinates
+
+
+def test_people_and_belt_shadow():
+    spec = TunnelSpec(length=20.0, density=200.0, conveyor=True, people=3, **CLEAN)
+    cloud, truth = make_tunnel(spec, seed=1)
+    pr = truth.centerline.project(cloud.xyz)
+    people = (truth.label == LABEL_DYNAMIC) & (pr.lateral > -1.2)  # coal: on the belt, right
+    expected = 3 * 200.0 * 2 * np.pi * 0.2 * 1.75
+    assert people.sum() == pytest.approx(expected, rel=0.1)
+    assert pr.vertical[people].min() == pytest.approx(-H2, abs=0.01)
+    # the belt (0.9 m above the floor, right side) shadows a band of the right wall below it;
+    # a handheld scanner still records a fifth of it
+    wall = truth.surface == 2
+    band = wall & (pr.vertical > -0.9) & (pr.vertical < -0.7)
+    free = wall & (pr.vertical > -0.2) & (pr.vertical < 0.6)
+    ratio = (band.sum() / 0.2) / (free.sum() / 0.8)
+    assert ratio == pytest.approx(0.2, abs=0.05)

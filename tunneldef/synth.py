@@ -66,7 +66,8 @@ _DEFORMATION_KINDS = ("roof_sag", "wall_bulge", "floor_heave")
 _SIDES = ("left", "right")
 
 # component codes (internal; they set the intensity model)
-_C_SHELL, _C_PIPE, _C_CABLE, _C_BELT, _C_FRAME, _C_COAL, _C_OUTLIER = range(7)
+_C_SHELL, _C_PIPE, _C_CABLE, _C_BELT, _C_FRAME, _C_COAL, _C_OUTLIER, _C_PERSON = range(8)
+_SHADOW_SEEN = 0.2  # share of shadowed shell a handheld scanner still records
 
 
 # --------------------------------------------------------------------------------------------
@@ -159,11 +160,16 @@ class TunnelSpec:
     chamber : bool
         Add a side chamber (a recess in one wall).
     equipment : bool
-        Add pipes and cables on the walls (label 1).
+        Add pipes and cables on the walls (label 1). They shadow the wall behind them, as seen
+        from the walking line (80 % of the shadowed shell is dropped).
     conveyor : bool
-        Add a conveyor belt along the floor (label 1) with a coal load (label 2).
+        Add a conveyor belt along the floor (label 1; frame, legs, return belt; its belt
+        surface 0.9 m above the floor, shadowing the floor and wall below) with a coal load
+        (label 2).
     holes : int
         Number of occlusion holes (random patches of shell removed) per epoch.
+    people : int
+        People standing in the walkway per epoch (label 2, dynamic), placed anew each epoch.
     uneven_density : float
         Amplitude in [0, 1) of a smooth multiplicative modulation of density along chainage.
     chamber_chainage, chamber_depth, chamber_length, chamber_side
@@ -184,6 +190,7 @@ class TunnelSpec:
     equipment: bool = False
     conveyor: bool = False
     holes: int = 0
+    people: int = 0
     uneven_density: float = 0.0
     chamber_chainage: float | None = None
     chamber_depth: float = 2.0
@@ -219,6 +226,8 @@ class TunnelSpec:
                 raise ConfigError(f"{name} must be 'left' or 'right', got {getattr(self, name)!r}")
         _positive("chamber_depth", self.chamber_depth)
         _positive("chamber_length", self.chamber_length)
+        if int(self.people) != self.people or self.people < 0:
+            raise ConfigError(f"people must be a non-negative integer, got {self.people!r}")
 
 
 @dataclass(frozen=True)
@@ -554,6 +563,7 @@ class _Scene:
     pipes: tuple[tuple[float, float, float, int], ...]  # (u, v, radius, component)
     conveyor: dict | None
     chamber: dict | None
+    scanner: tuple[float, float]  # (u, v) of the walking line
 
 
 def _side_sign(side: str) -> float:
@@ -612,7 +622,10 @@ def _make_scene(tunnel: TunnelSpec, rng: np.random.Generator) -> _Scene:
             "u_top": float(abs(top[0][0])),
             "u_back": w2 + tunnel.chamber_depth,
         }
-    return _Scene(tunnel, outline, axis, tuple(pipes), conveyor, chamber)
+    # the surveyor walks off the conveyor's side, the scanner held at about 1.5 m
+    walk = 0.0 if conveyor is None else -0.6 * conveyor["sign"]
+    scanner = (walk, -h2 + min(1.5, 0.6 * sec.height))
+    return _Scene(tunnel, outline, axis, tuple(pipes), conveyor, chamber, scanner)
 
 
 def _draw_heaps(rng: np.random.Generator, s0: float, s1: float) -> np.ndarray:
@@ -655,6 +668,18 @@ class _Epoch:
             g += amp * np.sin(2 * np.pi * s / lam + ph)
         return 1.0 + self.a * g / self.waves[:, 2].sum()
 
+    def chainages(self, n: int, s0: float | None = None, s1: float | None = None) -> np.ndarray:
+        """``n`` uniform chainages in [s0, s1], drawn already sorted (uniform spacings)."""
+        s0 = self.s0 if s0 is None else s0
+        s1 = self.s1 if s1 is None else s1
+        if n <= 0:
+            return np.empty(0)
+        gaps = self.rng.standard_exponential(n + 1)
+        s = np.cumsum(gaps[:-1])
+        s *= (s1 - s0) / (s[-1] + gaps[-1])
+        s += s0
+        return s
+
     def keep(self, s: np.ndarray, u: np.ndarray, umax: float) -> np.ndarray:
         """Thinning mask for uneven density and the along-axis stretch of a curved sweep."""
         jmax = 1.0 + abs(self.kappa) * umax
@@ -685,33 +710,33 @@ class _Epoch:
         out = sc.outline
         umax = float(np.max(np.abs(out.evaluate(np.linspace(0, out.perimeter, 64))[0])))
         n = self.n_candidates((self.s1 - self.s0) * out.perimeter, umax)
-        s = rng.uniform(self.s0, self.s1, n)
+        s = self.chainages(n)
         p = rng.uniform(0.0, out.perimeter, n)
         u, v, nu, nv, surface = out.evaluate(p)
         m = self.keep(s, u, umax)
         for _ in range(self.scene.tunnel.holes):
             cs, cp = rng.uniform(self.s0, self.s1), rng.uniform(0, out.perimeter)
             r = rng.uniform(0.3, 1.0)
-            dp = np.mod(p - cp + out.perimeter / 2, out.perimeter) - out.perimeter / 2
-            m &= (s - cs) ** 2 + dp**2 > r * r
+            i, j = np.searchsorted(s, (cs - r, cs + r))
+            dp = np.mod(p[i:j] - cp + out.perimeter / 2, out.perimeter) - out.perimeter / 2
+            m[i:j] &= (s[i:j] - cs) ** 2 + dp**2 > r * r
         ch = sc.chamber
         if ch is not None:
             wall = SURFACE_LEFT if ch["sign"] > 0 else SURFACE_RIGHT
             m &= ~((surface == wall) & (s > ch["s0"]) & (s < ch["s1"]))
-        cv = sc.conveyor
-        if cv is not None:  # the belt hides most of the floor below it
-            lo, hi = sorted((cv["u_out"], cv["u_in"]))
-            under = (surface == SURFACE_FLOOR) & (u > lo) & (u < hi)
-            m &= ~under | (rng.random(n) < 0.3)
+        hidden = self.shadow(u, v)
+        if hidden is not None:  # a moving handheld scanner still sees some of it
+            m &= ~hidden | (rng.random(n) < _SHADOW_SEEN)
         s, p, u, v, nu, nv, surface = (a[m] for a in (s, p, u, v, nu, nv, surface))
         disp = np.zeros(s.shape[0])
         for d in deformations:
             pc = _patch_centre(out, d)
-            dp = np.mod(p - pc + out.perimeter / 2, out.perimeter) - out.perimeter / 2
-            shift = d.amplitude * d.taper(s - d.chainage, dp)
-            u += shift * nu
-            v += shift * nv
-            disp -= shift
+            i, j = np.searchsorted(s, (d.chainage - d.length / 2, d.chainage + d.length / 2))
+            dp = np.mod(p[i:j] - pc + out.perimeter / 2, out.perimeter) - out.perimeter / 2
+            shift = d.amplitude * d.taper(s[i:j] - d.chainage, dp)
+            u[i:j] += shift * nu[i:j]
+            v[i:j] += shift * nv[i:j]
+            disp[i:j] -= shift
         self.add(s, u, v, _C_SHELL, LABEL_SHELL, surface, disp)
 
     def sweep(self, ua, va, ub, vb, comp, label, surface, s0=None, s1=None) -> None:
@@ -723,7 +748,7 @@ class _Epoch:
         length = float(np.hypot(ub - ua, vb - va))
         umax = max(abs(ua), abs(ub))
         n = self.n_candidates((s1 - s0) * length, umax)
-        s = self.rng.uniform(s0, s1, n)
+        s = self.chainages(n, s0, s1)
         f = self.rng.random(n)
         u, v = ua + f * (ub - ua), va + f * (vb - va)
         m = self.keep(s, u, umax)
@@ -733,7 +758,7 @@ class _Epoch:
         """A cylinder of radius r parallel to the axis."""
         umax = abs(uc) + r
         n = self.n_candidates((self.s1 - self.s0) * 2 * np.pi * r, umax)
-        s = self.rng.uniform(self.s0, self.s1, n)
+        s = self.chainages(n)
         a = self.rng.uniform(0, 2 * np.pi, n)
         u, v = uc + r * np.cos(a), vc + r * np.sin(a)
         m = self.keep(s, u, umax)
@@ -781,9 +806,56 @@ class _Epoch:
                 reject=inside,
             )
 
+    def shadow(self, u: np.ndarray, v: np.ndarray) -> np.ndarray | None:
+        """Shell points hidden from the walking line by pipes and the conveyor belt.
+
+        The scanner walks parallel to the axis and so do the occluders, so each casts the same
+        2-D shadow in every section: an angular interval seen from the scanner's position.
+        """
+        sc = self.scene
+        if not sc.pipes and sc.conveyor is None:
+            return None
+        us, vs = sc.scanner
+        ang = np.arctan2(v - vs, u - us)
+        dist = np.hypot(u - us, v - vs)
+        hidden = np.zeros(u.shape[0], dtype=bool)
+        for uc, vc, r, _ in sc.pipes:
+            dc = float(np.hypot(uc - us, vc - vs))
+            half = float(np.arcsin(min(r / dc, 1.0)))
+            da = np.angle(np.exp(1j * (ang - np.arctan2(vc - vs, uc - us))))
+            hidden |= (np.abs(da) < half) & (dist > dc)
+        cv = sc.conveyor
+        if cv is not None:  # the belt: a segment (u_out, v_belt)-(u_in, v_belt)
+            vb = cv["v_belt"]
+            a0, a1 = sorted(
+                (np.arctan2(vb - vs, cv["u_out"] - us), np.arctan2(vb - vs, cv["u_in"] - us))
+            )
+            if a1 - a0 <= np.pi:  # the walking line is not right above the belt
+                below = (v - vb) * np.sign(vs - vb) < 0
+                hidden |= (ang > a0) & (ang < a1) & below
+        return hidden
+
     def equipment(self) -> None:
         for uc, vc, r, comp in self.scene.pipes:
             self.tube(uc, vc, r, comp, LABEL_EQUIPMENT)
+
+    def people(self, count: int) -> None:
+        """People standing in the walkway: vertical cylinders (label 2, dynamic)."""
+        if count == 0:
+            return
+        sc = self.scene
+        h2 = sc.tunnel.section.height / 2
+        r, tall = 0.2, min(1.75, sc.tunnel.section.height - 0.2)
+        where = self.rng.uniform(self.s0 + 0.5, self.s1 - 0.5, count)
+        across = sc.scanner[0] + self.rng.uniform(-0.6, 0.6, count)
+        n = int(round(self.density * count * 2 * np.pi * r * tall))
+        k = self.rng.integers(0, count, n)
+        a = self.rng.uniform(0, 2 * np.pi, n)
+        s = where[k] + r * np.cos(a)
+        order = np.argsort(s)
+        u = (across[k] + r * np.sin(a))[order]
+        v = self.rng.uniform(-h2, -h2 + tall, n)[order]
+        self.add(s[order], u, v, _C_PERSON, LABEL_DYNAMIC, SURFACE_NONE)
 
     def conveyor(self, heaps: np.ndarray) -> None:
         cv = self.scene.conveyor
@@ -831,7 +903,7 @@ class _Epoch:
             )
         # coal load: parabolic heaps on the belt
         n = int(round(self.density * (self.s1 - self.s0) * wc * 1.15 * (1 + self.a)))
-        s = self.rng.uniform(self.s0, self.s1, n)
+        s = self.chainages(n)
         x = self.rng.uniform(-wc / 2, wc / 2, n)
         h = _heap_height(heaps, s) * (1.0 - (2.0 * x / wc) ** 2)
         m = (h > 0.005) & self.keep(s, uc + x, abs(uc) + wc)
@@ -866,19 +938,28 @@ class _Epoch:
         xyz = np.empty((n, 3))
         chainage = s.copy()
         axis = self.scene.axis
+        ca, sa = axis.cos_a, axis.sin_a
         for i in range(0, n, chunk):
             j = min(i + chunk, n)
-            c, t, lat, ver = axis.frames(s[i:j])
-            c += cat["u"][i:j, None] * lat
-            c += cat["v"][i:j, None] * ver
+            si, ui, vi = s[i:j], cat["u"][i:j], cat["v"][i:j]
+            if axis.radius is None:
+                cp, sp = np.ones_like(si), np.zeros_like(si)
+                cx, cy = si * ca, np.zeros_like(si)
+            else:
+                phi = si * (ca / axis.radius)
+                cp, sp = np.cos(phi), np.sin(phi)
+                cx, cy = axis.radius * sp, axis.radius * (1.0 - cp)
+            # x = c + u * lateral + v * vertical, component by component (see _Axis.frames)
+            out = xyz[i:j]
+            out[:, 0] = cx - ui * sp - vi * sa * cp
+            out[:, 1] = cy + ui * cp - vi * sa * sp
+            out[:, 2] = si * sa + vi * ca
             if sigma > 0:
                 noise = self.rng.normal(0.0, sigma, (j - i, 3))
-                c += noise
-                # exact chainage of the noisy point to first order (curved sweep stretch)
-                chainage[i:j] += np.einsum("ij,ij->i", noise, t) / (
-                    1.0 - self.kappa * cat["u"][i:j]
-                )
-            xyz[i:j] = c
+                out += noise
+                # chainage of the noisy point, exact to first order (curved sweep stretch)
+                along = noise[:, 0] * (ca * cp) + noise[:, 1] * (ca * sp) + noise[:, 2] * sa
+                chainage[i:j] += along / (1.0 - self.kappa * ui)
         intensity = _intensity(cat["comp"], self.rng)
         return {
             "xyz": xyz,
@@ -892,8 +973,8 @@ class _Epoch:
 
 # base intensity and log-normal spread per component: rock/coal-face shell, pipes (painted
 # metal), cables, rubber belt, steel frame, coal (dark), outliers (dust, people: anything)
-_INTENSITY_BASE = np.array([1400.0, 2600.0, 1800.0, 600.0, 2800.0, 350.0, 1500.0])
-_INTENSITY_SPREAD = np.array([0.25, 0.2, 0.2, 0.25, 0.2, 0.35, 0.8])
+_INTENSITY_BASE = np.array([1400.0, 2600.0, 1800.0, 600.0, 2800.0, 350.0, 1500.0, 900.0])
+_INTENSITY_SPREAD = np.array([0.25, 0.2, 0.2, 0.25, 0.2, 0.35, 0.8, 0.5])
 
 
 def _intensity(comp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -916,6 +997,7 @@ def _sample_epoch(
     ep.shell(deformations)
     ep.chamber()
     ep.equipment()
+    ep.people(scene.tunnel.people)
     if heaps is not None:
         ep.conveyor(heaps)
     ep.outliers()
