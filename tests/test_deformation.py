@@ -1,0 +1,333 @@
+"""Per-point deformation (paper §3.3.1-3.3.2): KNN counterparts, sign, Manhattan split."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from tunneldef.centerline.curve import Centerline, Projection
+from tunneldef.config import Config
+from tunneldef.deformation import DeformationResult, compute_deformation, danger_zones
+from tunneldef.deformation.knn import (
+    knn_counterparts,
+    knn_counterparts_reference,
+    manhattan_split,
+    morton_order,
+)
+from tunneldef.errors import ConfigError, InvalidCloudError
+from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
+
+AMP = 0.03
+SAG, BULGE, HEAVE, OUTWARD = 6.0, 11.0, 15.0, 6.0  # chainages of the synthetic deformations
+DEFORMATIONS = (
+    DeformationSpec(kind="roof_sag", chainage=SAG, amplitude=AMP),
+    DeformationSpec(kind="wall_bulge", chainage=BULGE, amplitude=AMP, side="left"),
+    DeformationSpec(kind="floor_heave", chainage=HEAVE, amplitude=AMP),
+    DeformationSpec(kind="wall_bulge", chainage=OUTWARD, amplitude=-AMP, side="right"),
+)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """20 m rectangular drift (5.8 x 2.86 m, sigma 15 mm, 400 pts/m^2, pipes, conveyor with
+    coal), compared epoch over chainage 1-19 m with four 30 mm deformations."""
+    spec = PairSpec(
+        tunnel=TunnelSpec(length=20.0, conveyor=True, equipment=True),
+        deformations=DEFORMATIONS,
+        cmp_shift=1.0,
+        cmp_length=18.0,
+        seed=0,
+    )
+    return make_pair(spec)
+
+
+@pytest.fixture(scope="module")
+def result(pair) -> DeformationResult:
+    """The paper's method with perfect registration, truth centreline and truth shell."""
+    t = pair.truth
+    return compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, shell=t.label == 0)
+
+
+def _core(pair, kind: str, side: str | None = None, level: float = 0.8) -> np.ndarray:
+    """Compared shell points where a deformation reaches ``level`` of its amplitude."""
+    t = pair.truth
+    surface = {"roof_sag": 0, "floor_heave": 3, "left": 1, "right": 2}[side or kind]
+    return (t.label == 0) & (t.surface == surface) & (np.abs(t.displacement) >= level * AMP)
+
+
+# --- KNN counterparts -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("k", [1, 3, 5])
+def test_fast_path_agrees_with_numpy_reference(k):
+    rng = np.random.default_rng(1)
+    ref = rng.uniform(-1, 1, (3000, 3)) * [5, 2, 1] + [1e5, 2e5, 300.0]  # survey coordinates
+    cmp = rng.uniform(-1, 1, (700, 3)) * [5, 2, 1] + [1e5, 2e5, 300.0]
+    c_fast, d_fast = knn_counterparts(ref, cmp, k=k, chunk_size=128)
+    c_ref, d_ref = knn_counterparts_reference(ref, cmp, k=k)
+    np.testing.assert_allclose(c_fast, c_ref, atol=1e-9)
+    np.testing.assert_allclose(d_fast, d_ref, atol=1e-9)
+
+
+def test_knn_centroid_known_answer():
+    # three reference points nearest to the origin, one far away: centroid (0, 1/3, 1/3)
+    ref = np.array([[0.0, 0, 0], [0, 1, 0], [0, 0, 1], [9, 9, 9]])
+    c, d = knn_counterparts(ref, np.zeros((1, 3)), k=3)
+    np.testing.assert_allclose(c[0], [0, 1 / 3, 1 / 3], atol=1e-12)
+    assert d[0] == pytest.approx(np.sqrt(2) / 3, abs=1e-12)
+
+
+def test_morton_order_is_a_spatially_coherent_permutation():
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform(0, 10, (20000, 3))
+    o = morton_order(xyz)
+    assert np.array_equal(np.sort(o), np.arange(len(xyz)))
+    step_sorted = np.linalg.norm(np.diff(xyz[o], axis=0), axis=1).mean()
+    step_random = np.linalg.norm(np.diff(xyz, axis=0), axis=1).mean()
+    assert step_sorted < 0.1 * step_random  # ~0.2 m against ~6.6 m
+    assert morton_order(np.empty((0, 3))).shape == (0,)
+
+
+@pytest.mark.parametrize("k", [0, -1, 2.5, True])
+def test_bad_k_is_rejected(k):
+    ref = np.zeros((5, 3))
+    with pytest.raises(InvalidCloudError, match=r"k \(number of nearest neighbours\)"):
+        knn_counterparts(ref, ref, k=k)
+
+
+def test_k_larger_than_reference_is_rejected():
+    with pytest.raises(InvalidCloudError, match="fewer than k = 3"):
+        knn_counterparts(np.zeros((2, 3)), np.zeros((4, 3)), k=3)
+
+
+def test_empty_input_is_rejected(pair):
+    cl = pair.truth.centerline
+    with pytest.raises(InvalidCloudError, match="compared cloud has 0 points"):
+        compute_deformation(pair.ref.xyz, np.empty((0, 3)), cl)
+    with pytest.raises(InvalidCloudError, match="reference cloud has 0 points"):
+        compute_deformation(np.empty((0, 3)), pair.ref.xyz[:10], cl)
+    with pytest.raises(InvalidCloudError, match="reference cloud has 0 points"):
+        knn_counterparts_reference(np.empty((0, 3)), np.zeros((1, 3)))
+
+
+def test_k_below_one_through_compute_deformation(pair):
+    t = pair.truth
+    with pytest.raises(InvalidCloudError, match=r"must be an integer >= 1, got 0"):
+        compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref[:100], t.centerline, k=0)
+
+
+def test_unknown_method_and_bad_shell_mask(pair):
+    t = pair.truth
+    with pytest.raises(ConfigError, match="unknown deformation method 'icp'"):
+        compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref[:10], t.centerline, method="icp")
+    with pytest.raises(InvalidCloudError, match=r"shell mask has shape \(3,\)"):
+        compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref[:10], t.centerline, shell=[1, 0, 1])
+
+
+# --- Manhattan split (paper §3.3.2, Fig. 11) ----------------------------------------------------
+
+
+def _straight_centerline(length: float = 4.0) -> Centerline:
+    return Centerline.from_polyline(np.array([[0.0, 0, 0], [length, 0, 0]]), step=0.05)
+
+
+def test_manhattan_split_known_answer():
+    def proj(lat, ver):
+        lat, ver = np.asarray(lat, float), np.asarray(ver, float)
+        return Projection(np.zeros_like(lat), lat, ver, np.hypot(lat, ver), np.ones_like(lat, bool))
+
+    # roof point 1 cm lower and 2 cm further right than its counterpart; left-wall point 2 cm
+    # further in; floor point 5 mm further out
+    h, v = manhattan_split(
+        proj([-1.02, 2.88, 0.3], [1.42, 0.5, -1.435]), proj([-1.00, 2.90, 0.3], [1.43, 0.5, -1.430])
+    )
+    np.testing.assert_allclose(h, [0.02, -0.02, 0.0], atol=1e-12)
+    np.testing.assert_allclose(v, [-0.01, 0.0, 0.005], atol=1e-12)
+
+
+def test_pure_vertical_roof_drop():
+    """A flat roof patch lowered by 3 cm: vertical = -amp, horizontal ~ 0, deformation < 0."""
+    spacing, amp = 0.02, 0.03
+    g = np.arange(-1.0, 1.0 + 1e-9, spacing)
+    x, y = np.meshgrid(np.arange(1.0, 3.0, spacing), g, indexing="ij")
+    ref = np.c_[x.ravel(), y.ravel(), np.full(x.size, 1.43)]
+    inner = (np.abs(ref[:, 1]) < 0.8) & (ref[:, 0] > 1.2) & (ref[:, 0] < 2.8)
+    cmp = ref[inner] + [0.003, 0.007, -amp]  # off the grid, so no neighbour ties
+    d = compute_deformation(ref, cmp, _straight_centerline(), shell=np.ones(len(cmp), bool))
+    np.testing.assert_allclose(d.vertical, -amp, atol=1e-9)
+    assert np.abs(d.horizontal).max() <= spacing
+    assert np.all(d.deformation < 0)
+    np.testing.assert_allclose(np.abs(d.deformation), amp, atol=spacing)
+
+
+# --- the paper's method on a synthetic pair ---------------------------------------------------
+
+
+def test_fields_contract(result, pair):
+    f = result.fields()
+    n = len(pair.cmp)
+    assert len(result) == n
+    for name in ("deformation", "deformation_horizontal", "deformation_vertical", "chainage"):
+        assert f[name].dtype == np.float32 and f[name].shape == (n,)
+    assert f["surface"].dtype == np.uint8 and set(np.unique(f["surface"])) <= {0, 1, 2, 3}
+    assert f["shell"].dtype == np.uint8
+    assert "significant" not in f and "lod95" not in f
+    assert result.method == "knn" and result.k == 3  # paper Table 3
+
+
+def test_chainage_and_surfaces_match_truth(result, pair):
+    t = pair.truth
+    np.testing.assert_allclose(result.chainage, t.chainage, atol=1e-6)
+    shell = t.label == 0
+    agree = np.mean(result.surface[shell] == t.surface[shell])
+    assert agree > 0.98  # only points within a few cm of the section's corners differ
+
+
+def test_unchanged_shell_is_centred_on_zero(result, pair):
+    t = pair.truth
+    still = (t.label == 0) & (t.displacement == 0)
+    d = result.deformation[still]
+    # the magnitude is the noise of the KNN distance (sigma 15 mm per point; paper Table 3
+    # reports 30 mm), its sign is random, so the mean is ~0 (the median is not a useful
+    # statistic: the distribution has two modes near +-20 mm)
+    assert abs(np.mean(d)) < 0.002
+    assert 0.45 < np.mean(d > 0) < 0.55
+    assert 0.015 < np.abs(d).mean() < 0.035
+    assert abs(np.mean(result.horizontal[still] + result.vertical[still])) < 0.001
+
+
+@pytest.mark.parametrize(
+    ("kind", "side", "sign", "component"),
+    [
+        ("roof_sag", None, -1, "vertical"),
+        ("wall_bulge", "left", -1, "horizontal"),
+        ("floor_heave", None, -1, "vertical"),
+        ("wall_bulge", "right", +1, "horizontal"),  # moved outward
+    ],
+)
+def test_sign_on_every_surface(result, pair, kind, side, sign, component):
+    core = _core(pair, kind, side)
+    assert core.sum() > 50
+    assert np.sign(np.median(result.deformation[core])) == sign
+    assert np.mean(np.sign(result.deformation[core]) == sign) > 0.8
+    comp = getattr(result, component)[core]
+    other = (result.vertical if component == "horizontal" else result.horizontal)[core]
+    truth = np.mean(pair.truth.displacement[core])  # ~ +-27 mm
+    # the distance to the counterpart: the motion (plus a little of the noise, minus the
+    # centroid's lean towards the compared point); within 5 mm of the truth here
+    assert np.median(result.deformation[core]) == pytest.approx(truth, abs=0.005)
+    # the normal component carries the motion, attenuated by 10-30 % because the nearest
+    # reference points are those whose noise leans towards the compared point; the other
+    # component is only noise
+    assert 0.6 < np.median(comp) / truth < 1.0
+    assert abs(np.median(other)) < 0.005
+
+
+def test_peaks_of_danger_zones(result):
+    danger, zones = danger_zones(result, threshold=0.02)
+    by_surface = {z["surface"]: z for z in zones}
+    assert sorted(by_surface) == ["floor", "left_wall", "right_wall", "roof"]
+    assert len(zones) == 4
+    truth = {
+        "roof": (SAG, -AMP),
+        "left_wall": (BULGE, -AMP),
+        "floor": (HEAVE, -AMP),
+        "right_wall": (OUTWARD, AMP),
+    }
+    for name, (s, amp) in truth.items():
+        z = by_surface[name]
+        # robust peak: median within 0.4 m of the crest (classify.robust_peak)
+        assert z["peak"] == pytest.approx(amp, abs=0.005), name
+        assert z["peak_chainage"] == pytest.approx(s, abs=0.5), name
+        assert z["start"] < s < z["end"]
+    assert np.all(danger[~result.shell] == 0)
+
+
+def test_progress_is_reported(pair):
+    t = pair.truth
+    seen: list[tuple[str, float]] = []
+    sel = slice(0, 5000)
+    compute_deformation(
+        pair.ref.xyz,
+        t.cmp_xyz_in_ref[sel],
+        t.centerline,
+        shell=np.ones(5000, bool),
+        progress=lambda s, f: seen.append((s, f)),
+    )
+    fr = [f for _, f in seen if _ == "deformation"]
+    assert fr[0] == 0.0 and fr[-1] == 1.0 and fr == sorted(fr)
+    assert any(s.startswith("deformation: nearest") for s, _ in seen)
+
+
+def test_k_from_config_and_override(pair):
+    t = pair.truth
+    sel = slice(0, 3000)
+    cfg = Config().replace(deformation={"k": 1})
+    a = compute_deformation(
+        pair.ref.xyz, t.cmp_xyz_in_ref[sel], t.centerline, config=cfg, shell=np.ones(3000, bool)
+    )
+    b = compute_deformation(
+        pair.ref.xyz, t.cmp_xyz_in_ref[sel], t.centerline, k=1, shell=np.ones(3000, bool)
+    )
+    assert a.k == b.k == 1
+    np.testing.assert_array_equal(a.deformation, b.deformation)
+
+
+# --- with the other stages, where they have landed ---------------------------------------------
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("tunneldef.deformation.shell") is None,
+    reason="tunneldef.deformation.shell not available",
+)
+def test_coal_on_the_conveyor_is_change_but_not_shell(pair):
+    t = pair.truth
+    d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline)
+    coal = t.label == 2
+    assert coal.sum() > 500
+    assert np.mean(np.abs(d.deformation[coal]) > 0.02) > 0.5  # reported as change...
+    assert np.mean(d.shell[coal]) < 0.05  # ...but not as shell
+    danger, _ = danger_zones(d, threshold=0.02)
+    assert danger[coal].sum() == 0
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("tunneldef.deformation.robust") is None,
+    reason="tunneldef.deformation.robust not available",
+)
+def test_robust_method_dispatch(pair):
+    t = pair.truth
+    near = np.abs(t.chainage - SAG) < 2.5  # the sag's stretch only, to keep the test short
+    d = compute_deformation(
+        pair.ref.xyz,
+        t.cmp_xyz_in_ref[near],
+        t.centerline,
+        method="robust",
+        shell=t.label[near] == 0,
+    )
+    f = d.fields()
+    assert f["significant"].dtype == np.uint8 and f["lod95"].dtype == np.float32
+    core = _core(pair, "roof_sag")[near]
+    assert np.nanmedian(d.deformation[core]) == pytest.approx(-AMP, abs=0.008)
+    assert np.nanmedian(d.vertical[core]) < -0.02
+    assert d.method == "robust" and d.k is None
+
+
+def test_with_extracted_centerline(pair):
+    centerline = pytest.importorskip("tunneldef.centerline")
+    if not hasattr(centerline, "extract_centerline"):
+        pytest.skip("tunneldef.centerline.extract_centerline not available")
+    t = pair.truth
+    cl = centerline.extract_centerline(pair.ref.xyz).centerline
+    d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, cl, shell=t.label == 0)
+    _, zones = danger_zones(d, threshold=0.02)
+    roof = [z for z in zones if z["surface"] == "roof"]
+    assert len(roof) == 1
+    # the extracted centreline may start elsewhere than the design axis: take the truth
+    # chainage of the point the peak sits on
+    i = int(np.argmin(np.linalg.norm(t.cmp_xyz_in_ref - roof[0]["peak_xyz"], axis=1)))
+    s_truth = t.chainage[i]
+    assert s_truth == pytest.approx(SAG, abs=0.5)
+    assert roof[0]["peak"] == pytest.approx(-AMP, abs=0.005)
