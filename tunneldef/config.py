@@ -76,7 +76,7 @@ class CenterlineConfig:
                                   "than centres, so the least-squares curve smooths their noise")
     sample_step: float = _p(0.05, "ours: spacing of centreline samples, m")
     max_iterations: int = _p(3, "ours: re-slicing passes normal to the curve (curved tunnels)")
-    converge_tol: float = _p(0.005, "ours: stop re-slicing when the curve moves less, m")
+    converge_tol: float = _p(0.005, "ours: stop re-slicing when the curve moves less (p95), m")
     min_slices: int = _p(5, "ours: fewer accepted slices and there is no centreline")
     vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)")
 
@@ -106,9 +106,17 @@ class DeformationConfig:
 class DangerConfig:
     """Danger classification (paper §4.3, Fig. 22)."""
 
+    normal_radius: float = _p(0.3, "ours (robust): reference neighbourhood for the normal, m")
+    cylinder_radius: float = _p(0.2, "ours (robust): cylinder radius along the normal, m")
+    max_depth: float = _p(0.3, "ours (robust): largest measurable motion along the normal, m")
+    core_spacing: float = _p(0.1, "ours (robust): voxel edge of the core points, m")
     threshold: float = _p(0.05, "ours: |deformation| above 50 mm is flagged")
     rule: str = _p("absolute", "'absolute' threshold, or 'mean' (paper §4.3: mean |deformation|)")
-    min_zone_length: float = _p(0.2, "ours: shorter danger runs along the chainage are merged")
+    min_zone_length: float = _p(0.2, "ours: danger runs shorter along the chainage are dropped, m")
+    merge_gap: float = _p(0.5, "ours: danger runs closer than this along the chainage merge, m")
+    neighbours: int = _p(64, "ours: judged on the median of this many nearest shell points "
+                             "(1 = paper §4.3's per-point rule)")
+    peak_radius: float = _p(0.4, "ours: a zone's peak is the median within this radius, m")
 
 
 @dataclass(frozen=True)
