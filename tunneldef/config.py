@@ -100,16 +100,16 @@ class DeformationConfig:
     k: int = _p(3, "paper §4.3, Table 3: k = 3 nearest neighbours")
     section_step: float = _p(1.0, "paper Table 4: sections 1 m apart")
     section_thickness: float = _p(0.2, "ours: points within +-0.1 m of a section's chainage")
+    normal_radius: float = _p(0.3, "ours (robust): reference neighbourhood for the normal, m")
+    cylinder_radius: float = _p(0.2, "ours (robust): cylinder radius along the normal, m")
+    max_depth: float = _p(0.3, "ours (robust): largest measurable motion along the normal, m")
+    core_spacing: float = _p(0.1, "ours (robust): voxel edge of the core points, m")
 
 
 @dataclass(frozen=True)
 class DangerConfig:
     """Danger classification (paper §4.3, Fig. 22)."""
 
-    normal_radius: float = _p(0.3, "ours (robust): reference neighbourhood for the normal, m")
-    cylinder_radius: float = _p(0.2, "ours (robust): cylinder radius along the normal, m")
-    max_depth: float = _p(0.3, "ours (robust): largest measurable motion along the normal, m")
-    core_spacing: float = _p(0.1, "ours (robust): voxel edge of the core points, m")
     threshold: float = _p(0.05, "ours: |deformation| above 50 mm is flagged")
     rule: str = _p("absolute", "'absolute' threshold, or 'mean' (paper §4.3: mean |deformation|)")
     min_zone_length: float = _p(0.2, "ours: danger runs shorter along the chainage are dropped, m")
