@@ -1,0 +1,330 @@
+"""Registration of the compared epoch onto the reference (paper §3.2).
+
+``register(ref_xyz, cmp_xyz, method="centerline")`` returns a :class:`Registration` whose
+``transform`` maps compared coordinates into the reference frame. ``method`` is the paper's
+centreline registration (:mod:`.centerline`) or one of the whole-cloud baselines
+(:mod:`.baselines`: ``icp_point``, ``icp_plane``, ``gicp``, ``ndt``), all started from the same
+coarse PCA alignment with its direction ambiguity resolved.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..centerline.curve import Centerline
+from ..cloud import check_points
+from ..config import Config
+from ..errors import NotATunnelError, RegistrationError
+from ..frame import principal_frame
+from ..progress import ProgressCallback, report
+from .baselines import BASELINES
+from .centerline import fine_align, refine_stable
+from .metrics import apply_transform, fitness, overlap_fraction, slice_fitness
+
+__all__ = ["register", "Registration", "METHODS"]
+
+logger = logging.getLogger(__name__)
+
+METHODS = ("centerline", "icp_point", "icp_plane", "gicp", "ndt")
+
+
+@dataclass(frozen=True)
+class Registration:
+    """The result of :func:`register`.
+
+    Attributes
+    ----------
+    transform : ndarray, shape (4, 4)
+        Rigid transform mapping compared coordinates into the reference frame.
+    method : str
+        Method used.
+    fitness : float
+        The paper's fitness score (§4.2, Table 2): RMSE of nearest-neighbour distances between
+        the registered compared points and the reference (pairs within 0.1 m), metres.
+    slice_fitness : list of dict
+        ``{"chainage", "fitness", "points"}`` for five slices across the overlap (Table 2).
+    axial_uncertainty : float
+        One standard deviation of the position along the tunnel axis, metres (``inf`` when
+        the overlap has no feature along the axis; whole-cloud methods report NaN).
+    overlap : float
+        Fraction of compared points within the common stretch lying within 0.1 m of the
+        reference after registration.
+    stages : dict of str to ndarray (4, 4)
+        Cumulative cmp -> ref transform after each stage (``coarse``, ``cross_section``,
+        ``longitudinal``, ``plan``, ``refine`` or the baseline's name).
+    timings : dict of str to float
+        Seconds per stage.
+    info : dict
+        Diagnostics (floor tilt removed, axial shifts, candidate scores...).
+    """
+
+    transform: np.ndarray
+    method: str
+    fitness: float
+    slice_fitness: list[dict[str, float]]
+    axial_uncertainty: float
+    overlap: float
+    stages: dict[str, np.ndarray] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form (infinite values become None)."""
+
+        def num(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {
+            "method": self.method,
+            "transform": np.asarray(self.transform).tolist(),
+            "fitness_m": num(self.fitness),
+            "slice_fitness": [{k: (num(v) if isinstance(v, float) else v) for k, v in d.items()}
+                              for d in self.slice_fitness],
+            "axial_uncertainty_m": num(self.axial_uncertainty),
+            "overlap": num(self.overlap),
+            "stages": {k: np.asarray(v).tolist() for k, v in self.stages.items()},
+            "timings_s": {k: float(v) for k, v in self.timings.items()},
+            "info": _jsonable(self.info),
+        }
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _jsonable(v.tolist())
+    if isinstance(v, (np.floating, float)):
+        return float(v) if np.isfinite(v) else None
+    if isinstance(v, (np.integer, np.bool_)):
+        return v.item()
+    return v
+
+
+def _as_centerline(c: Any) -> tuple[Centerline, Any]:
+    """A Centerline and the per-slice records from a Centerline or a CenterlineResult."""
+    if isinstance(c, Centerline):
+        return c, None
+    if hasattr(c, "centerline"):
+        return c.centerline, getattr(c, "slices", None)
+    raise TypeError(f"expected a Centerline or a CenterlineResult, got {type(c).__name__}")
+
+
+def _subsample(xyz: np.ndarray, n: int, seed: int) -> np.ndarray:
+    if len(xyz) <= n:
+        return xyz
+    return xyz[np.random.default_rng(seed).choice(len(xyz), n, replace=False)]
+
+
+def _flips(vertical: str) -> list[np.ndarray]:
+    """Proper sign flips of the principal axes: the tunnel pointing either way (and, without a
+    known vertical, either side up)."""
+    out = [np.diag([1.0, 1.0, 1.0, 1.0]), np.diag([-1.0, -1.0, 1.0, 1.0])]
+    if vertical == "pca":
+        out += [np.diag([1.0, -1.0, -1.0, 1.0]), np.diag([-1.0, 1.0, -1.0, 1.0])]
+    return out
+
+
+def register(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    *,
+    method: str = "centerline",
+    ref_centerline: Any = None,
+    cmp_centerline: Any = None,
+    config: Config | None = None,
+    progress: ProgressCallback | None = None,
+) -> Registration:
+    """Register the compared epoch onto the reference.
+
+    Parameters
+    ----------
+    ref_xyz : ndarray, shape (N, 3)
+        Reference epoch, metres.
+    cmp_xyz : ndarray, shape (M, 3)
+        Compared epoch in its own frame (any heading, a few degrees of tilt, any offset).
+    method : {"centerline", "icp_point", "icp_plane", "gicp", "ndt"}
+        The paper's centreline registration (§3.2) or a whole-cloud baseline started from the
+        same coarse alignment.
+    ref_centerline, cmp_centerline : Centerline or CenterlineResult, optional
+        Each epoch's centreline in its own frame; extracted with
+        :func:`tunneldef.centerline.extract_centerline` when not given.
+    config : Config, optional
+        Parameters (``config.registration``).
+    progress : callable, optional
+        ``progress(stage, fraction)``.
+
+    Returns
+    -------
+    Registration
+
+    Raises
+    ------
+    RegistrationError
+        If an epoch has no tunnel axis, the epochs overlap too little, or do not match.
+
+    Notes
+    -----
+    Steps: coarse PCA alignment for each sign candidate, then cross-section, longitudinal and
+    plan alignment (or a baseline), the candidate with the best overlap kept, an optional robust
+    refinement on the stable shell, then the checks of overlap and the fitness score.
+
+    References
+    ----------
+    Sensors 2024, 24, 2299, doi:10.3390/s24072299, §3.2.
+    """
+    config = config or Config()
+    rc = config.registration
+    if method not in METHODS:
+        raise RegistrationError(f"unknown registration method {method!r}; use one of "
+                                f"{', '.join(METHODS)}")
+    ref_xyz = check_points(ref_xyz, name="reference points", min_points=100)
+    cmp_xyz = check_points(cmp_xyz, name="compared points", min_points=100)
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    try:
+        ref_frame = principal_frame(ref_xyz, vertical=rc.coarse_vertical)
+        cmp_frame = principal_frame(cmp_xyz, vertical=rc.coarse_vertical)
+    except NotATunnelError as exc:
+        raise RegistrationError(f"no common tunnel axis: {exc}") from None
+    f_ref, f_cmp = ref_frame.matrix, cmp_frame.matrix
+    f_ref_inv = np.linalg.inv(f_ref)
+    ref_l = apply_transform(f_ref, _subsample(ref_xyz, rc.max_points, 1))
+    cmp_s = _subsample(cmp_xyz, rc.max_points, 2)
+    ref_tree = cKDTree(ref_l)
+
+    ref_cl = cmp_cl = None
+    slices_ref = slices_cmp = None
+    if method == "centerline":
+        t0 = time.perf_counter()
+        if ref_centerline is None or cmp_centerline is None:
+            from ..centerline import extract_centerline
+        if ref_centerline is None:
+            ref_centerline = extract_centerline(ref_xyz, config=config)
+        report(progress, "registration", 0.25)
+        if cmp_centerline is None:
+            cmp_centerline = extract_centerline(cmp_xyz, config=config)
+        report(progress, "registration", 0.5)
+        ref_cl, slices_ref = _as_centerline(ref_centerline)
+        cmp_cl, slices_cmp = _as_centerline(cmp_centerline)
+        ref_cl = ref_cl.transformed(f_ref)
+        timings["centerlines"] = time.perf_counter() - t0
+
+    candidates = []
+    for q, flip in enumerate(_flips(rc.coarse_vertical)):
+        coarse = flip @ f_cmp
+        cmp_l = apply_transform(coarse, cmp_s)
+        t0 = time.perf_counter()
+        try:
+            if method == "centerline":
+                assert ref_cl is not None and cmp_cl is not None
+                fine = fine_align(
+                    ref_l, cmp_l, ref_cl, cmp_cl.transformed(coarse),
+                    floor_distance=rc.floor_ransac_distance,
+                    angle_step_deg=rc.plan_angle_step_deg, axial_search=rc.axial_search,
+                )
+                local, stages, info = fine.transform, fine.stages, dict(fine.info)
+                info["axial_uncertainty"] = fine.axial_uncertainty
+                stage_t = dict(fine.timings)
+            else:
+                local = BASELINES[method](ref_l, cmp_l, np.eye(4), voxel=rc.voxel)
+                stages, info, stage_t = {method: local}, {}, {}
+        except RegistrationError as exc:
+            logger.info("direction candidate %d rejected: %s", q, exc)
+            candidates.append((-1.0, np.inf, q, None, str(exc)))
+            continue
+        moved = apply_transform(local, cmp_l)
+        d, _ = ref_tree.query(moved, workers=-1)
+        score = _common_overlap(d, moved, ref_cl, ref_l, ref_frame)
+        fit = fitness(d)
+        stage_t[method if method != "centerline" else "fine"] = time.perf_counter() - t0
+        candidates.append((score, fit, q, (coarse, local, stages, info, stage_t), ""))
+        report(progress, "registration", 0.5 + 0.2 * (q + 1) / len(_flips(rc.coarse_vertical)))
+    ok = [c for c in candidates if c[3] is not None]
+    if not ok:
+        raise RegistrationError(f"the epochs could not be registered: {candidates[0][4]}")
+    ok.sort(key=lambda c: (-round(c[0], 3), c[1]))
+    score, fit, q, (coarse, local, stages, info, stage_t), _ = ok[0]
+    info["direction_candidates"] = [{"flip": c[2], "overlap": c[0], "fitness": c[1]}
+                                    for c in candidates]
+    if len(ok) > 1 and ok[1][0] > score - 0.01 and abs(ok[1][1] - fit) < 0.1 * fit:
+        logger.warning("the tunnel looks the same both ways round; the direction is ambiguous")
+        info["direction_ambiguous"] = True
+    timings.update(stage_t)
+
+    world_stages = {"coarse": f_ref_inv @ coarse}
+    for name, m in stages.items():
+        world_stages[name] = f_ref_inv @ m @ coarse
+
+    if method == "centerline" and rc.refine:
+        t0 = time.perf_counter()
+        cmp_l = apply_transform(local @ coarse, cmp_s)
+        corr = refine_stable(ref_l, cmp_l, ref_cl, voxel=rc.voxel)
+        local = corr @ local
+        world_stages["refine"] = f_ref_inv @ local @ coarse
+        timings["refine"] = time.perf_counter() - t0
+    report(progress, "registration", 0.9)
+
+    transform = f_ref_inv @ local @ coarse
+    moved_l = apply_transform(local @ coarse, cmp_s)
+    d, _ = ref_tree.query(moved_l, workers=-1)
+    overlap = _common_overlap(d, moved_l, ref_cl, ref_l, ref_frame)
+    _check_overlap(moved_l, ref_l, ref_cl, ref_frame, overlap, rc)
+    fit = fitness(d)
+    per_slice = slice_fitness(ref_l, moved_l, ref_cl if ref_cl is not None else
+                              _axis_line(ref_l), tree=ref_tree)
+    timings["total"] = time.perf_counter() - t_all
+    report(progress, "registration", 1.0)
+    axial = float(info.pop("axial_uncertainty", np.nan))
+    logger.info("registered (%s): fitness %.4f m, overlap %.2f, axial +-%.3f m",
+                method, fit, overlap, axial)
+    return Registration(transform, method, fit, per_slice, axial, overlap, world_stages,
+                        timings, info)
+
+
+def _axis_line(ref_l: np.ndarray) -> Centerline:
+    """The x axis of the reference's principal frame over its extent (for slicing)."""
+    x0, x1 = float(ref_l[:, 0].min()), float(ref_l[:, 0].max())
+    return Centerline.from_polyline(np.array([[x0, 0.0, 0.0], [x1, 0.0, 0.0]]), step=0.1)
+
+
+def _common_overlap(d: np.ndarray, moved: np.ndarray, ref_cl: Centerline | None,
+                    ref_l: np.ndarray, frame: Any) -> float:
+    """Fraction of compared points within the reference's stretch that lie within 0.1 m."""
+    cl = ref_cl if ref_cl is not None else _axis_line(ref_l)
+    s = cl.project(moved).chainage
+    inside = (s >= 0) & (s <= cl.length)
+    if inside.sum() < 100:
+        return 0.0
+    return overlap_fraction(d[inside], radius=0.1)
+
+
+def _check_overlap(moved: np.ndarray, ref_l: np.ndarray, ref_cl: Centerline | None, frame: Any,
+                   overlap: float, rc: Any) -> None:
+    cl = ref_cl if ref_cl is not None else _axis_line(ref_l)
+    s = cl.project(moved).chainage
+    inside = (s >= 0) & (s <= cl.length)
+    common = 0.0
+    if inside.sum() >= 100:
+        common = float(np.percentile(s[inside], 99) - np.percentile(s[inside], 1))
+    span = float(np.percentile(s, 99) - np.percentile(s, 1))
+    need = max(rc.min_overlap_length, 0.2 * min(span, cl.length))
+    if common < need:
+        raise RegistrationError(
+            f"the epochs share only {common:.1f} m of tunnel (at least {need:.1f} m needed); "
+            "scan an overlapping stretch"
+        )
+    if overlap < rc.min_overlap:
+        raise RegistrationError(
+            f"after registration only {overlap:.0%} of the compared points lie on the "
+            f"reference (at least {rc.min_overlap:.0%} needed); the epochs do not show the "
+            "same tunnel"
+        )

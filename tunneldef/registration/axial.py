@@ -1,0 +1,244 @@
+"""The along-axis shift between two epochs, by correlating their unrolled sections.
+
+Along a straight prism the position along the axis is the one degree of freedom the section
+shape says nothing about; only what changes along the tunnel (chambers, width and height changes,
+curvature, niches, equipment, rock texture) fixes it. The paper (§3.2.4, eq. 12) takes the shift
+at the maximum of the cross-correlation of the two centrelines' y values. Here the same idea is
+applied to everything the two epochs share: both clouds are expressed relative to the reference
+centreline as an unrolled section image ``r(s, phi)`` (mean distance from the centreline per
+chainage bin and per angle around it; its columns at 0 and 180 degrees are the half-widths,
+at 90 and 270 degrees the half-heights, their difference the centreline's y), and the shift is
+the minimum of a robust mismatch between the two images, searched coarse-to-fine with sub-bin
+interpolation. The curvature of the mismatch at its minimum gives the shift's uncertainty.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..centerline.curve import Centerline
+
+__all__ = ["AxialShift", "coarse_shift", "fine_shift", "section_image"]
+
+logger = logging.getLogger(__name__)
+
+_N_ANGLES = 48  # 7.5 degree sectors around the centreline
+_MIN_CELL_POINTS = 3
+
+
+@dataclass(frozen=True)
+class AxialShift:
+    """Result of :func:`axial_shift`.
+
+    Attributes
+    ----------
+    shift : float
+        Chainage correction, metres: a compared point at reference chainage ``s`` belongs at
+        ``s + shift``.
+    uncertainty : float
+        One standard deviation of ``shift``, metres (``inf`` when the tunnel has no feature
+        along its axis within the overlap).
+    informative : bool
+        False when the mismatch has no clear minimum (then ``shift`` is 0).
+    cells : int
+        Number of image cells both epochs share at the optimum.
+    """
+
+    shift: float
+    uncertainty: float
+    informative: bool
+    cells: int
+
+
+def section_image(
+    chainage: np.ndarray,
+    lateral: np.ndarray,
+    vertical: np.ndarray,
+    *,
+    start: float,
+    step: float,
+    n_bins: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unrolled section image: mean distance from the centreline per (angle, chainage) cell.
+
+    Returns
+    -------
+    mean : ndarray, shape (48, n_bins)
+        Mean distance, metres (NaN in cells with fewer than 3 points).
+    count : ndarray, shape (48, n_bins)
+        Points per cell.
+    """
+    i = np.floor((chainage - start) / step).astype(np.int64)
+    phi = np.arctan2(vertical, lateral)
+    j = np.floor((phi + np.pi) / (2 * np.pi) * _N_ANGLES).astype(np.int64) % _N_ANGLES
+    ok = (i >= 0) & (i < n_bins)
+    flat = j[ok] * n_bins + i[ok]
+    r = np.hypot(lateral, vertical)[ok]
+    size = _N_ANGLES * n_bins
+    cnt = np.bincount(flat, minlength=size).astype(np.float64)
+    tot = np.bincount(flat, weights=r, minlength=size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(cnt >= _MIN_CELL_POINTS, tot / cnt, np.nan)
+    return mean.reshape(_N_ANGLES, n_bins), cnt.reshape(_N_ANGLES, n_bins)
+
+
+def _mismatch(
+    ref: np.ndarray, cmp: np.ndarray, shifts: np.ndarray, *, clip: float, min_cells: int
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Robust mean square difference of the images for integer bin shifts (cmp column i
+    compared with ref column i + k), after removing a constant offset per angle."""
+    n = ref.shape[1]
+    scores = np.full(len(shifts), np.inf)
+    cells = np.zeros(len(shifts), dtype=np.int64)
+    residuals: list[np.ndarray] = []
+    for q, k in enumerate(shifts):
+        if k >= 0:
+            a, b = ref[:, k:], cmp[:, : n - k]
+        else:
+            a, b = ref[:, : n + k], cmp[:, -k:]
+        e = a - b
+        valid = np.isfinite(e)
+        nv = int(valid.sum())
+        if nv < min_cells:
+            residuals.append(np.empty((0, 0)))
+            continue
+        e = np.where(valid, e, 0.0)
+        per_angle = valid.sum(axis=1)
+        offset = np.where(per_angle > 0, e.sum(axis=1) / np.maximum(per_angle, 1), 0.0)
+        e = np.where(valid, e - offset[:, None], np.nan)
+        scores[q] = float(np.nanmean(np.minimum(e**2, clip**2)))
+        cells[q] = nv
+        residuals.append(e)
+    return scores, cells, residuals
+
+
+def coarse_shift(
+    ref_proj: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cmp_proj: tuple[np.ndarray, np.ndarray, np.ndarray],
+    centerline: Centerline,
+    *,
+    search: float,
+    step: float = 0.25,
+    clip: float = 0.3,
+    min_overlap: float = 0.3,
+) -> tuple[float, float]:
+    """Chainage shift to within a bin, from the unrolled section images (eq. 12 generalised).
+
+    Parameters
+    ----------
+    ref_proj, cmp_proj : tuple of ndarray, each shape (N,)
+        (chainage, lateral, vertical) of reference and compared points relative to the reference
+        centreline, metres.
+    centerline : Centerline
+        The reference centreline.
+    search : float
+        Largest shift searched, metres.
+    step : float
+        Chainage bin, metres.
+    clip : float
+        Larger differences count as this (deformation, moved equipment, coal), metres.
+
+    Returns
+    -------
+    shift : float
+        A compared point at reference chainage ``s`` belongs at ``s + shift``, metres.
+    contrast : float
+        How much deeper the best match is than the median of the others, relative to it (0 on a
+        featureless prism).
+    """
+    nb = int(np.ceil((centerline.length + 2 * search) / step))
+    ref_img, _ = section_image(*ref_proj, start=-search, step=step, n_bins=nb)
+    cmp_img, _ = section_image(*cmp_proj, start=-search, step=step, n_bins=nb)
+    n_cmp = int(np.isfinite(cmp_img).sum())
+    kmax = int(np.ceil(search / step))
+    shifts = np.arange(-kmax, kmax + 1)
+    scores, _, _ = _mismatch(ref_img, cmp_img, shifts, clip=clip,
+                             min_cells=max(int(min_overlap * n_cmp), 10))
+    if not np.isfinite(scores).any():
+        return 0.0, 0.0
+    best = int(np.argmin(scores))
+    med = float(np.median(scores[np.isfinite(scores)]))
+    return float(shifts[best] * step), float((med - scores[best]) / max(med, 1e-12))
+
+
+def fine_shift(
+    ref_xyz: np.ndarray,
+    ref_normals: np.ndarray,
+    cmp_xyz: np.ndarray,
+    tangents: np.ndarray,
+    *,
+    blocks: np.ndarray,
+    kernels: tuple[float, ...] = (0.2, 0.1, 0.05),
+    iterations: int = 12,
+    tree: cKDTree | None = None,
+) -> AxialShift:
+    """Along-axis shift by one-degree-of-freedom robust point-to-plane alignment.
+
+    Each compared point may only slide along the local tunnel direction; the shift minimising
+    the Tukey-weighted point-to-plane residuals is found by Gauss-Newton, with a kernel that
+    narrows from ``kernels[0]`` to ``kernels[-1]`` (wide basin first, deformation excluded
+    last). Only surfaces whose normals have a component along the axis (chamber ends, niches,
+    width changes, rough rock, equipment) carry information. The uncertainty is the larger of
+    the least-squares value ``sigma_r / sqrt(sum(w (n . t)^2))`` and a delete-one-block
+    jackknife over chainage blocks (features are few, errors within a block correlated).
+
+    Parameters
+    ----------
+    ref_xyz, ref_normals : ndarray, shape (N, 3)
+        Reference points and unit normals, metres.
+    cmp_xyz : ndarray, shape (M, 3)
+        Compared points, within ~0.2 m of their place along the axis.
+    tangents : ndarray, shape (M, 3)
+        Unit tunnel direction at each compared point.
+    blocks : ndarray, shape (M,) of int
+        Chainage block of each compared point (for the jackknife).
+    kernels : tuple of float
+        Tukey kernel widths, metres; correspondences farther than 1.5 x the kernel are dropped.
+
+    Returns
+    -------
+    AxialShift
+        ``shift`` along ``tangents``, metres.
+    """
+    tree = tree if tree is not None else cKDTree(ref_xyz)
+    delta = 0.0
+    for kernel in kernels:
+        for _ in range(iterations):
+            p = cmp_xyz + delta * tangents
+            d, j = tree.query(p, distance_upper_bound=1.5 * kernel, workers=-1)
+            ok = np.isfinite(d)
+            if ok.sum() < 20:
+                return AxialShift(0.0, float("inf"), False, 0)
+            n = ref_normals[j[ok]]
+            r = np.einsum("ij,ij->i", n, p[ok] - ref_xyz[j[ok]])
+            a = np.einsum("ij,ij->i", n, tangents[ok])
+            w = np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
+            info = float(np.sum(w * a * a))
+            if info <= 1e-9:
+                return AxialShift(0.0, float("inf"), False, 0)
+            step = -float(np.sum(w * a * r)) / info
+            delta += float(np.clip(step, -kernel / 2, kernel / 2))
+            if abs(step) < 1e-5:
+                break
+    sw = float(w.sum())
+    sigma_r = np.sqrt(float(np.sum(w * r * r)) / max(sw - 1, 1.0))
+    used = j[ok][w > 0]
+    shared = len(used) / max(len(np.unique(used)), 1)
+    sigma = float(sigma_r * np.sqrt(shared / info))
+    # delete-one-block jackknife of the linearised solution
+    b = blocks[ok]
+    ub, inv = np.unique(b, return_inverse=True)
+    if len(ub) >= 3:
+        num = np.bincount(inv, weights=w * a * r, minlength=len(ub))
+        den = np.bincount(inv, weights=w * a * a, minlength=len(ub))
+        rest = info - den
+        good = rest > 1e-9
+        d_minus = delta - (num.sum() - num[good]) / rest[good]
+        g = int(good.sum())
+        if g >= 3:
+            sigma = max(sigma, float(np.sqrt((g - 1) / g * np.sum((d_minus - d_minus.mean())**2))))
+    return AxialShift(delta, sigma, sigma < 0.1, int((w > 0).sum()))

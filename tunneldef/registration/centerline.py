@@ -1,0 +1,397 @@
+"""Registration by the tunnel centreline (paper §3.2): three views of the tunnel aligned in turn.
+
+All stages work in the reference's principal (PCA) frame, x along the tunnel, z up, origin at the
+reference centroid (survey coordinates never enter the numerics):
+
+1. coarse (§3.2.1): the compared epoch's principal frame is put onto the reference's. PCA axes
+   have no sign, so the candidate sign flips (the tunnel can point either way) are each carried
+   through the whole chain and the one with the best final overlap is kept;
+2. cross-section (§3.2.2): floor points are segmented, a RANSAC plane is fitted to each epoch's
+   floor and the compared floor normal is rotated onto the reference's about the centre of the
+   compared bounding box, then the floors are brought to the same height;
+3. longitudinal (§3.2.3): least-squares lines z = a x + b through both centrelines' (x, z); the
+   compared line is rotated onto the reference's about their intersection;
+4. plan (§3.2.4): the rotation minimising the variance of nearest-point distances between the
+   centrelines' xoy projections (small-angle steps), the shift along the axis from a
+   cross-correlation (eq. 12, generalised in :mod:`.axial`), and the mean lateral offset; on a
+   curved tunnel the shift slides the compared centreline along the reference one;
+5. optional refinement: robust point-to-plane ICP restricted to the stable shell.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from ..centerline.curve import Centerline
+from ..errors import RegistrationError
+from .axial import coarse_shift, fine_shift
+
+__all__ = ["FineResult", "fine_align", "floor_plane", "rotation_between", "refine_stable"]
+
+logger = logging.getLogger(__name__)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3, 3) taking unit vector ``a`` onto unit vector ``b``."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if np.linalg.norm(v) < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        raise RegistrationError("the floors of the two epochs face opposite ways; "
+                                "is one epoch upside down?")
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + c)
+
+
+def _about(rot: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """4 x 4 rotation about a point."""
+    m = np.eye(4)
+    m[:3, :3] = rot
+    m[:3, 3] = centre - rot @ centre
+    return m
+
+
+def _translation(t: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = t
+    return m
+
+
+def _apply(m: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    return xyz @ m[:3, :3].T + m[:3, 3]
+
+
+def floor_plane(
+    xyz: np.ndarray, centerline: Centerline, *, distance: float, seed: int = 0
+) -> tuple[np.ndarray, float, int]:
+    """Floor plane of one epoch: RANSAC (Open3D ``segment_plane``) refined by least squares.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (N, 3)
+        Points in a frame with z roughly up, metres.
+    centerline : Centerline
+        The epoch's centreline in the same frame; the floor level is the median height of the
+        points below it (within ~40 degrees of the downward vertical), and the floor points
+        are all points within 0.2 m of that level.
+    distance : float
+        RANSAC inlier distance, metres.
+
+    Returns
+    -------
+    normal : ndarray, shape (3,)
+        Unit normal pointing up.
+    offset : float
+        ``d`` of the plane ``normal . x + d = 0``, metres.
+    inliers : int
+        Number of floor points on the plane.
+    """
+    p = centerline.project(xyz)
+    core = p.inside & (p.vertical < 0) & (np.abs(p.lateral) < 0.8 * np.abs(p.vertical))
+    level = float(np.median(p.vertical[core])) if core.sum() >= 100 else 0.0
+    # the whole floor width: everything near the floor level found below the centreline
+    m = p.inside & (np.abs(p.vertical - level) < 0.2) & (p.vertical < 0)
+    pts = xyz[m] if core.sum() >= 100 else xyz[core]
+    if pts.shape[0] < 100:
+        raise RegistrationError(
+            f"only {pts.shape[0]} floor points found; the cross-section alignment needs a "
+            "scanned floor (check that the scan covers the floor)"
+        )
+    rng = np.random.default_rng(seed)
+    if pts.shape[0] > 60_000:
+        pts = pts[rng.choice(pts.shape[0], 60_000, replace=False)]
+    o3d.utility.random.seed(seed)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    model, idx = pc.segment_plane(distance, 3, 1000)
+    n = np.asarray(model[:3], dtype=np.float64)
+    n /= np.linalg.norm(n)
+    d = float(model[3]) / np.linalg.norm(np.asarray(model[:3]))
+    # least-squares refits on the points near the plane (tighter each time)
+    for tol in (distance, distance / 2, distance / 2):
+        r = pts @ n + d
+        inl = pts[np.abs(r) < tol]
+        if inl.shape[0] < 50:
+            break
+        c = inl.mean(axis=0)
+        _, _, vt = np.linalg.svd(inl - c, full_matrices=False)
+        n = vt[2] / np.linalg.norm(vt[2])
+        d = -float(n @ c)
+    if n[2] < 0:
+        n, d = -n, -d
+    if n[2] < 0.7:
+        raise RegistrationError("the floor plane is steeper than 45 degrees; the epoch is not "
+                                "levelled (set registration.coarse_vertical = \"pca\")")
+    return n, d, int(len(idx))
+
+
+def _line_xz(cl: Centerline, trim: float) -> tuple[float, float, np.ndarray]:
+    """Least-squares line z = a x + b through the centreline (eqs. 7-10), ends trimmed."""
+    m = (cl.chainage >= trim) & (cl.chainage <= cl.length - trim)
+    p = cl.points[m] if m.sum() >= 5 else cl.points
+    a, b = np.polyfit(p[:, 0], p[:, 2], 1)
+    return float(a), float(b), p
+
+
+def _rot_z(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _plan_rotation(
+    ref_cl: Centerline, cmp_cl: Centerline, *, step_deg: float, span_deg: float = 10.0
+) -> float:
+    """Rotation about z (radians) minimising the variance of nearest-point distances between
+    the xoy projections of the two centrelines (paper §3.2.4), by small-angle steps."""
+    q = ref_cl.points[:, :2]
+    tree = cKDTree(q)
+    end = max(1, int(np.searchsorted(ref_cl.chainage, 0.5)))
+    p = cmp_cl.points[:, :2]
+    c = p.mean(axis=0)
+
+    def variance(theta: float) -> float:
+        r = _rot_z(theta)[:2, :2]
+        pp = (p - c) @ r.T + c
+        d, i = tree.query(pp)
+        keep = (i >= end) & (i < len(q) - end)
+        if keep.sum() < max(10, 0.2 * len(p)):
+            return np.inf
+        return float(np.var(d[keep]))
+
+    grid = np.radians(np.arange(-span_deg, span_deg + 1e-9, 0.5))
+    vals = np.array([variance(t) for t in grid])
+    if not np.isfinite(vals).any():
+        raise RegistrationError("the two centrelines do not overlap in plan; do the epochs "
+                                "cover the same stretch of tunnel?")
+    theta = float(grid[int(np.argmin(vals))])
+    best = float(vals.min())
+    step = np.radians(0.25)
+    while step >= np.radians(step_deg) * 0.999:
+        moved = False
+        for cand in (theta - step, theta + step):
+            v = variance(cand)
+            if v < best:
+                theta, best, moved = cand, v, True
+                break
+        if not moved:
+            step /= 2
+    return theta
+
+
+def _kabsch_2d(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray]:
+    """Rotation angle and translation (2,) best mapping src (N, 2) onto dst (N, 2)."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    h = (src - cs).T @ (dst - cd)
+    theta = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
+    r = _rot_z(theta)[:2, :2]
+    return theta, cd - r @ cs
+
+
+@dataclass
+class FineResult:
+    """The stages after the coarse alignment, in the reference's principal frame."""
+
+    transform: np.ndarray
+    stages: dict[str, np.ndarray] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    axial_uncertainty: float = float("inf")
+    axial_informative: bool = False
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def fine_align(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    ref_cl: Centerline,
+    cmp_cl: Centerline,
+    *,
+    floor_distance: float,
+    angle_step_deg: float,
+    axial_search: float,
+    plan_iterations: int = 2,
+) -> FineResult:
+    """Stages 2-4 of the centreline registration (paper §3.2.2-3.2.4).
+
+    Parameters
+    ----------
+    ref_xyz, cmp_xyz : ndarray, shape (N, 3) and (M, 3)
+        Reference and coarsely aligned compared points (subsampled), reference principal frame.
+    ref_cl, cmp_cl : Centerline
+        Their centrelines, same frame.
+    floor_distance : float
+        RANSAC inlier distance of the floor plane, metres.
+    angle_step_deg : float
+        Smallest rotation step of the plan alignment, degrees.
+    axial_search : float
+        Largest along-axis shift searched, metres.
+
+    Returns
+    -------
+    FineResult
+        ``transform`` (4, 4) maps the coarse compared points onto the reference.
+    """
+    out = FineResult(np.eye(4))
+    total = np.eye(4)
+
+    # --- cross-section (§3.2.2)
+    t0 = time.perf_counter()
+    n_ref, d_ref, _ = floor_plane(ref_xyz, ref_cl, distance=floor_distance)
+    n_cmp, d_cmp, _ = floor_plane(cmp_xyz, cmp_cl, distance=floor_distance)
+    lo, hi = cmp_xyz.min(axis=0), cmp_xyz.max(axis=0)
+    m = _about(rotation_between(n_cmp, n_ref), (lo + hi) / 2)
+    p0 = _apply(m, (-d_cmp * n_cmp)[None])[0]
+    m = _translation(-(n_ref @ p0 + d_ref) * n_ref) @ m
+    total = m @ total
+    out.stages["cross_section"] = total.copy()
+    out.timings["cross_section"] = time.perf_counter() - t0
+    out.info["floor_tilt_deg"] = float(np.degrees(np.arccos(np.clip(n_cmp @ n_ref, -1, 1))))
+
+    # --- longitudinal (§3.2.3)
+    t0 = time.perf_counter()
+    cl = cmp_cl.transformed(total)
+    a_r, b_r, _ = _line_xz(ref_cl, 0.5)
+    a_c, b_c, pc = _line_xz(cl, 0.5)
+    alpha = float(np.arctan(a_r) - np.arctan(a_c))
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    rot = np.array([[ca, 0.0, -sa], [0.0, 1.0, 0.0], [sa, 0.0, ca]])
+    # rotating about the lines' intersection == rotating about a point of the compared line
+    # and moving it onto the reference line (stable when the lines are nearly parallel)
+    xm = float(pc[:, 0].mean())
+    centre = np.array([xm, 0.0, a_c * xm + b_c])
+    m = _about(rot, centre)
+    m = _translation(np.array([0.0, 0.0, a_r * xm + b_r - centre[2]])) @ m
+    total = m @ total
+    out.stages["longitudinal"] = total.copy()
+    out.timings["longitudinal"] = time.perf_counter() - t0
+    out.info["longitudinal_angle_deg"] = float(np.degrees(alpha))
+
+    # --- plan (§3.2.4)
+    t0 = time.perf_counter()
+    cl = cmp_cl.transformed(total)
+    theta = _plan_rotation(ref_cl, cl, step_deg=angle_step_deg)
+    c = np.r_[cl.points[:, :2].mean(axis=0), 0.0]
+    total = _about(_rot_z(theta), c) @ total
+    ref_p = ref_cl.project(ref_xyz)
+    ref_proj = (ref_p.chainage, ref_p.lateral, ref_p.vertical)
+
+    def slide(total: np.ndarray, shift: float) -> np.ndarray:
+        # move the compared centreline onto the reference one, ``shift`` further along it
+        # (x shift, mean y difference and residual rotation in one 2-D least-squares fit)
+        cl = cmp_cl.transformed(total)
+        s = ref_cl.project(cl.points).chainage + shift
+        keep = (s > 0.5) & (s < ref_cl.length - 0.5)
+        if keep.sum() < 10:
+            raise RegistrationError("the two centrelines share less than a metre; the epochs "
+                                    "do not overlap")
+        th, t = _kabsch_2d(cl.points[keep, :2], ref_cl.point_at(s[keep])[:, :2])
+        m = np.eye(4)
+        m[:3, :3] = _rot_z(th)
+        m[:2, 3] = t
+        return m @ total
+
+    moved = _apply(total, cmp_xyz)
+    p = ref_cl.project(moved)
+    coarse, contrast = coarse_shift(ref_proj, (p.chainage, p.lateral, p.vertical), ref_cl,
+                                    search=axial_search)
+    total = slide(total, coarse)
+    out.info["axial_coarse_shift"] = coarse
+    out.info["axial_contrast"] = contrast
+    ref_n = _normals(ref_xyz)
+    cmp_n = _normals(cmp_xyz)
+    tree = cKDTree(ref_xyz)
+    shift = None
+    for _ in range(plan_iterations):
+        moved = _apply(total, cmp_xyz)
+        pm = ref_cl.project(moved)
+        tan = ref_cl.frame_at(pm.chainage)[0]
+        # only surfaces facing along the axis tell where along the axis the epoch is
+        sel = np.abs(np.einsum("ij,ij->i", cmp_n @ total[:3, :3].T, tan)) > 0.25
+        if sel.sum() < 200:
+            sel[:] = True
+        shift = fine_shift(ref_xyz, ref_n, moved[sel], tan[sel], tree=tree,
+                           blocks=np.floor(pm.chainage[sel]).astype(np.int64))
+        total = slide(total, shift.shift)
+        out.info.setdefault("axial_fine_shifts", []).append(shift.shift)
+    out.stages["plan"] = total.copy()
+    out.timings["plan"] = time.perf_counter() - t0
+    out.axial_uncertainty = float(shift.uncertainty)
+    out.axial_informative = bool(shift.informative)
+    out.transform = total
+    return out
+
+
+def refine_stable(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    ref_cl: Centerline,
+    *,
+    voxel: float,
+    keep_fraction: float = 0.8,
+    iterations: int = 30,
+) -> np.ndarray:
+    """Robust point-to-plane ICP on the stable shell (optional last stage).
+
+    Points off the shell (equipment, clutter: more than 10 cm from the median distance to the
+    centreline in their 0.5 m x 7.5 degree cell) and the compared points with the largest
+    residuals (the ``1 - keep_fraction`` worst, where deformation is) are left out; the rest is
+    voxel-downsampled and aligned with a Tukey kernel.
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        Correction to apply after the compared points' current transform.
+    """
+    ref_s = _shell_mask(ref_xyz, ref_cl)
+    cmp_s = _shell_mask(cmp_xyz, ref_cl)
+    ref_pts = ref_xyz[ref_s]
+    d, _ = cKDTree(ref_pts).query(cmp_xyz)
+    cmp_s &= d <= np.quantile(d[cmp_s], keep_fraction)
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cmp_xyz[cmp_s]))
+    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ref_pts))
+    src = src.voxel_down_sample(voxel)
+    dst = dst.voxel_down_sample(voxel)
+    dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
+    reg = o3d.pipelines.registration
+    loss = reg.TukeyLoss(k=2 * voxel)
+    res = reg.registration_icp(
+        src, dst, 3 * voxel, np.eye(4), reg.TransformationEstimationPointToPlane(loss),
+        reg.ICPConvergenceCriteria(max_iteration=iterations),
+    )
+    return np.asarray(res.transformation)
+
+
+def _normals(xyz: np.ndarray, radius: float = 0.15) -> np.ndarray:
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+    return np.asarray(pc.normals)
+
+
+def _shell_mask(xyz: np.ndarray, cl: Centerline, tol: float = 0.1) -> np.ndarray:
+    p = cl.project(xyz)
+    i = np.floor(p.chainage / 0.5).astype(np.int64)
+    i -= i.min()
+    j = (np.floor((np.arctan2(p.vertical, p.lateral) + np.pi) / (2 * np.pi) * 48)).astype(
+        np.int64) % 48
+    key = i * 48 + j
+    order = np.argsort(key, kind="stable")
+    k_sorted = key[order]
+    r_sorted = p.distance[order]
+    starts = np.flatnonzero(np.r_[True, k_sorted[1:] != k_sorted[:-1]])
+    # median per cell: sort by (cell, r) and take the middle element
+    order2 = np.lexsort((r_sorted, k_sorted))
+    r2 = r_sorted[order2]
+    ends = np.r_[starts[1:], len(k_sorted)]
+    med = r2[(starts + ends) // 2]
+    cell_med = np.repeat(med, ends - starts)
+    mask = np.empty(len(xyz), dtype=bool)
+    mask[order] = np.abs(r_sorted - cell_med) <= tol
+    return mask
