@@ -90,6 +90,12 @@ class RegistrationConfig:
     plan_angle_step_deg: float = _p(0.01, "ours: smallest rotation step of the plan alignment")
     refine: bool = _p(True, "ours: final robust point-to-plane on stable shell")
     voxel: float = _p(0.05, "ours: voxel size for refinement and baselines, m")
+    coarse_vertical: str = _p("world", "ours: 'world' keeps z up in the coarse PCA (levelled "
+                              "SLAM scans; 2 direction candidates), 'pca' = paper §3.2.1 (4)")
+    axial_search: float = _p(10.0, "ours: largest along-axis shift searched after PCA, m")
+    max_points: int = _p(200_000, "ours: points per epoch used by the registration stages")
+    min_overlap: float = _p(0.5, "ours: least fraction of common-stretch points within 0.1 m")
+    min_overlap_length: float = _p(3.0, "ours: least common stretch of tunnel, m")
 
 
 @dataclass(frozen=True)

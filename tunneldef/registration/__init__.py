@@ -84,8 +84,10 @@ class Registration:
             "method": self.method,
             "transform": np.asarray(self.transform).tolist(),
             "fitness_m": num(self.fitness),
-            "slice_fitness": [{k: (num(v) if isinstance(v, float) else v) for k, v in d.items()}
-                              for d in self.slice_fitness],
+            "slice_fitness": [
+                {k: (num(v) if isinstance(v, float) else v) for k, v in d.items()}
+                for d in self.slice_fitness
+            ],
             "axial_uncertainty_m": num(self.axial_uncertainty),
             "overlap": num(self.overlap),
             "stages": {k: np.asarray(v).tolist() for k, v in self.stages.items()},
@@ -183,8 +185,9 @@ def register(
     config = config or Config()
     rc = config.registration
     if method not in METHODS:
-        raise RegistrationError(f"unknown registration method {method!r}; use one of "
-                                f"{', '.join(METHODS)}")
+        raise RegistrationError(
+            f"unknown registration method {method!r}; use one of {', '.join(METHODS)}"
+        )
     ref_xyz = check_points(ref_xyz, name="reference points", min_points=100)
     cmp_xyz = check_points(cmp_xyz, name="compared points", min_points=100)
     timings: dict[str, float] = {}
@@ -227,9 +230,13 @@ def register(
             if method == "centerline":
                 assert ref_cl is not None and cmp_cl is not None
                 fine = fine_align(
-                    ref_l, cmp_l, ref_cl, cmp_cl.transformed(coarse),
+                    ref_l,
+                    cmp_l,
+                    ref_cl,
+                    cmp_cl.transformed(coarse),
                     floor_distance=rc.floor_ransac_distance,
-                    angle_step_deg=rc.plan_angle_step_deg, axial_search=rc.axial_search,
+                    angle_step_deg=rc.plan_angle_step_deg,
+                    axial_search=rc.axial_search,
                 )
                 local, stages, info = fine.transform, fine.stages, dict(fine.info)
                 info["axial_uncertainty"] = fine.axial_uncertainty
@@ -253,8 +260,9 @@ def register(
         raise RegistrationError(f"the epochs could not be registered: {candidates[0][4]}")
     ok.sort(key=lambda c: (-round(c[0], 3), c[1]))
     score, fit, q, (coarse, local, stages, info, stage_t), _ = ok[0]
-    info["direction_candidates"] = [{"flip": c[2], "overlap": c[0], "fitness": c[1]}
-                                    for c in candidates]
+    info["direction_candidates"] = [
+        {"flip": c[2], "overlap": c[0], "fitness": c[1]} for c in candidates
+    ]
     if len(ok) > 1 and ok[1][0] > score - 0.01 and abs(ok[1][1] - fit) < 0.1 * fit:
         logger.warning("the tunnel looks the same both ways round; the direction is ambiguous")
         info["direction_ambiguous"] = True
@@ -279,15 +287,18 @@ def register(
     overlap = _common_overlap(d, moved_l, ref_cl, ref_l, ref_frame)
     _check_overlap(moved_l, ref_l, ref_cl, ref_frame, overlap, rc)
     fit = fitness(d)
-    per_slice = slice_fitness(ref_l, moved_l, ref_cl if ref_cl is not None else
-                              _axis_line(ref_l), tree=ref_tree)
+    per_slice = slice_fitness(
+        ref_l, moved_l, ref_cl if ref_cl is not None else _axis_line(ref_l), tree=ref_tree
+    )
     timings["total"] = time.perf_counter() - t_all
     report(progress, "registration", 1.0)
     axial = float(info.pop("axial_uncertainty", np.nan))
-    logger.info("registered (%s): fitness %.4f m, overlap %.2f, axial +-%.3f m",
-                method, fit, overlap, axial)
-    return Registration(transform, method, fit, per_slice, axial, overlap, world_stages,
-                        timings, info)
+    logger.info(
+        "registered (%s): fitness %.4f m, overlap %.2f, axial +-%.3f m", method, fit, overlap, axial
+    )
+    return Registration(
+        transform, method, fit, per_slice, axial, overlap, world_stages, timings, info
+    )
 
 
 def _axis_line(ref_l: np.ndarray) -> Centerline:
@@ -296,8 +307,9 @@ def _axis_line(ref_l: np.ndarray) -> Centerline:
     return Centerline.from_polyline(np.array([[x0, 0.0, 0.0], [x1, 0.0, 0.0]]), step=0.1)
 
 
-def _common_overlap(d: np.ndarray, moved: np.ndarray, ref_cl: Centerline | None,
-                    ref_l: np.ndarray, frame: Any) -> float:
+def _common_overlap(
+    d: np.ndarray, moved: np.ndarray, ref_cl: Centerline | None, ref_l: np.ndarray, frame: Any
+) -> float:
     """Fraction of compared points within the reference's stretch that lie within 0.1 m."""
     cl = ref_cl if ref_cl is not None else _axis_line(ref_l)
     s = cl.project(moved).chainage
@@ -307,8 +319,14 @@ def _common_overlap(d: np.ndarray, moved: np.ndarray, ref_cl: Centerline | None,
     return overlap_fraction(d[inside], radius=0.1)
 
 
-def _check_overlap(moved: np.ndarray, ref_l: np.ndarray, ref_cl: Centerline | None, frame: Any,
-                   overlap: float, rc: Any) -> None:
+def _check_overlap(
+    moved: np.ndarray,
+    ref_l: np.ndarray,
+    ref_cl: Centerline | None,
+    frame: Any,
+    overlap: float,
+    rc: Any,
+) -> None:
     cl = ref_cl if ref_cl is not None else _axis_line(ref_l)
     s = cl.project(moved).chainage
     inside = (s >= 0) & (s <= cl.length)

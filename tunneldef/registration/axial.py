@@ -156,8 +156,9 @@ def coarse_shift(
     n_cmp = int(np.isfinite(cmp_img).sum())
     kmax = int(np.ceil(search / step))
     shifts = np.arange(-kmax, kmax + 1)
-    scores, _, _ = _mismatch(ref_img, cmp_img, shifts, clip=clip,
-                             min_cells=max(int(min_overlap * n_cmp), 10))
+    scores, _, _ = _mismatch(
+        ref_img, cmp_img, shifts, clip=clip, min_cells=max(int(min_overlap * n_cmp), 10)
+    )
     if not np.isfinite(scores).any():
         return 0.0, 0.0
     best = int(np.argmin(scores))
@@ -240,5 +241,7 @@ def fine_shift(
         d_minus = delta - (num.sum() - num[good]) / rest[good]
         g = int(good.sum())
         if g >= 3:
-            sigma = max(sigma, float(np.sqrt((g - 1) / g * np.sum((d_minus - d_minus.mean())**2))))
+            sigma = max(
+                sigma, float(np.sqrt((g - 1) / g * np.sum((d_minus - d_minus.mean()) ** 2)))
+            )
     return AxialShift(delta, sigma, sigma < 0.1, int((w > 0).sum()))

@@ -28,34 +28,73 @@ def _pcd(xyz: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
 
 
 def _criteria(iterations: int) -> o3d.pipelines.registration.ICPConvergenceCriteria:
-    return _reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7,
-                                       max_iteration=iterations)
+    return _reg.ICPConvergenceCriteria(
+        relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iterations
+    )
 
 
-def icp_point(ref_xyz: np.ndarray, cmp_xyz: np.ndarray, init: np.ndarray, *, voxel: float = 0.05,
-              max_distance: float = 0.5, iterations: int = 60) -> np.ndarray:
+def icp_point(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    init: np.ndarray,
+    *,
+    voxel: float = 0.05,
+    max_distance: float = 0.5,
+    iterations: int = 60,
+) -> np.ndarray:
     """Open3D point-to-point ICP; returns the (4, 4) cmp -> ref transform (metres)."""
-    res = _reg.registration_icp(_pcd(cmp_xyz, voxel), _pcd(ref_xyz, voxel), max_distance, init,
-                                _reg.TransformationEstimationPointToPoint(), _criteria(iterations))
+    res = _reg.registration_icp(
+        _pcd(cmp_xyz, voxel),
+        _pcd(ref_xyz, voxel),
+        max_distance,
+        init,
+        _reg.TransformationEstimationPointToPoint(),
+        _criteria(iterations),
+    )
     return np.asarray(res.transformation)
 
 
-def icp_plane(ref_xyz: np.ndarray, cmp_xyz: np.ndarray, init: np.ndarray, *, voxel: float = 0.05,
-              max_distance: float = 0.5, iterations: int = 60) -> np.ndarray:
+def icp_plane(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    init: np.ndarray,
+    *,
+    voxel: float = 0.05,
+    max_distance: float = 0.5,
+    iterations: int = 60,
+) -> np.ndarray:
     """Open3D point-to-plane ICP; returns the (4, 4) cmp -> ref transform (metres)."""
     dst = _pcd(ref_xyz, voxel)
     dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
-    res = _reg.registration_icp(_pcd(cmp_xyz, voxel), dst, max_distance, init,
-                                _reg.TransformationEstimationPointToPlane(), _criteria(iterations))
+    res = _reg.registration_icp(
+        _pcd(cmp_xyz, voxel),
+        dst,
+        max_distance,
+        init,
+        _reg.TransformationEstimationPointToPlane(),
+        _criteria(iterations),
+    )
     return np.asarray(res.transformation)
 
 
-def gicp(ref_xyz: np.ndarray, cmp_xyz: np.ndarray, init: np.ndarray, *, voxel: float = 0.05,
-         max_distance: float = 0.5, iterations: int = 60) -> np.ndarray:
+def gicp(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    init: np.ndarray,
+    *,
+    voxel: float = 0.05,
+    max_distance: float = 0.5,
+    iterations: int = 60,
+) -> np.ndarray:
     """Open3D generalized ICP; returns the (4, 4) cmp -> ref transform (metres)."""
     res = _reg.registration_generalized_icp(
-        _pcd(cmp_xyz, voxel), _pcd(ref_xyz, voxel), max_distance, init,
-        _reg.TransformationEstimationForGeneralizedICP(), _criteria(iterations))
+        _pcd(cmp_xyz, voxel),
+        _pcd(ref_xyz, voxel),
+        max_distance,
+        init,
+        _reg.TransformationEstimationForGeneralizedICP(),
+        _criteria(iterations),
+    )
     return np.asarray(res.transformation)
 
 
@@ -79,8 +118,15 @@ def _ndt_cells(xyz: np.ndarray, cell: float, min_points: int = 6):
     return mu[ok], icov
 
 
-def ndt(ref_xyz: np.ndarray, cmp_xyz: np.ndarray, init: np.ndarray, *, voxel: float = 0.05,
-        cell: float = 0.5, iterations: int = 40) -> np.ndarray:
+def ndt(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    init: np.ndarray,
+    *,
+    voxel: float = 0.05,
+    cell: float = 0.5,
+    iterations: int = 40,
+) -> np.ndarray:
     """Point-to-distribution NDT (Magnusson 2009), our vectorised implementation.
 
     Parameters

@@ -47,8 +47,9 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if np.linalg.norm(v) < 1e-12:
         if c > 0:
             return np.eye(3)
-        raise RegistrationError("the floors of the two epochs face opposite ways; "
-                                "is one epoch upside down?")
+        raise RegistrationError(
+            "the floors of the two epochs face opposite ways; is one epoch upside down?"
+        )
     k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
     return np.eye(3) + k + k @ k / (1 + c)
 
@@ -129,8 +130,10 @@ def floor_plane(
     if n[2] < 0:
         n, d = -n, -d
     if n[2] < 0.7:
-        raise RegistrationError("the floor plane is steeper than 45 degrees; the epoch is not "
-                                "levelled (set registration.coarse_vertical = \"pca\")")
+        raise RegistrationError(
+            "the floor plane is steeper than 45 degrees; the epoch is not "
+            'levelled (set registration.coarse_vertical = "pca")'
+        )
     return n, d, int(len(idx))
 
 
@@ -170,8 +173,10 @@ def _plan_rotation(
     grid = np.radians(np.arange(-span_deg, span_deg + 1e-9, 0.5))
     vals = np.array([variance(t) for t in grid])
     if not np.isfinite(vals).any():
-        raise RegistrationError("the two centrelines do not overlap in plan; do the epochs "
-                                "cover the same stretch of tunnel?")
+        raise RegistrationError(
+            "the two centrelines do not overlap in plan; do the epochs "
+            "cover the same stretch of tunnel?"
+        )
     theta = float(grid[int(np.argmin(vals))])
     best = float(vals.min())
     step = np.radians(0.25)
@@ -290,8 +295,9 @@ def fine_align(
         s = ref_cl.project(cl.points).chainage + shift
         keep = (s > 0.5) & (s < ref_cl.length - 0.5)
         if keep.sum() < 10:
-            raise RegistrationError("the two centrelines share less than a metre; the epochs "
-                                    "do not overlap")
+            raise RegistrationError(
+                "the two centrelines share less than a metre; the epochs do not overlap"
+            )
         th, t = _kabsch_2d(cl.points[keep, :2], ref_cl.point_at(s[keep])[:, :2])
         m = np.eye(4)
         m[:3, :3] = _rot_z(th)
@@ -300,8 +306,9 @@ def fine_align(
 
     moved = _apply(total, cmp_xyz)
     p = ref_cl.project(moved)
-    coarse, contrast = coarse_shift(ref_proj, (p.chainage, p.lateral, p.vertical), ref_cl,
-                                    search=axial_search)
+    coarse, contrast = coarse_shift(
+        ref_proj, (p.chainage, p.lateral, p.vertical), ref_cl, search=axial_search
+    )
     total = slide(total, coarse)
     out.info["axial_coarse_shift"] = coarse
     out.info["axial_contrast"] = contrast
@@ -317,8 +324,14 @@ def fine_align(
         sel = np.abs(np.einsum("ij,ij->i", cmp_n @ total[:3, :3].T, tan)) > 0.25
         if sel.sum() < 200:
             sel[:] = True
-        shift = fine_shift(ref_xyz, ref_n, moved[sel], tan[sel], tree=tree,
-                           blocks=np.floor(pm.chainage[sel]).astype(np.int64))
+        shift = fine_shift(
+            ref_xyz,
+            ref_n,
+            moved[sel],
+            tan[sel],
+            tree=tree,
+            blocks=np.floor(pm.chainage[sel]).astype(np.int64),
+        )
         total = slide(total, shift.shift)
         out.info.setdefault("axial_fine_shifts", []).append(shift.shift)
     out.stages["plan"] = total.copy()
@@ -363,7 +376,11 @@ def refine_stable(
     reg = o3d.pipelines.registration
     loss = reg.TukeyLoss(k=2 * voxel)
     res = reg.registration_icp(
-        src, dst, 3 * voxel, np.eye(4), reg.TransformationEstimationPointToPlane(loss),
+        src,
+        dst,
+        3 * voxel,
+        np.eye(4),
+        reg.TransformationEstimationPointToPlane(loss),
         reg.ICPConvergenceCriteria(max_iteration=iterations),
     )
     return np.asarray(res.transformation)
@@ -380,7 +397,8 @@ def _shell_mask(xyz: np.ndarray, cl: Centerline, tol: float = 0.1) -> np.ndarray
     i = np.floor(p.chainage / 0.5).astype(np.int64)
     i -= i.min()
     j = (np.floor((np.arctan2(p.vertical, p.lateral) + np.pi) / (2 * np.pi) * 48)).astype(
-        np.int64) % 48
+        np.int64
+    ) % 48
     key = i * 48 + j
     order = np.argsort(key, kind="stable")
     k_sorted = key[order]

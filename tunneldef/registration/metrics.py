@@ -97,8 +97,13 @@ def slice_fitness(
     for c in np.asarray(chainages, dtype=np.float64):
         m = np.abs(s - c) <= thickness / 2
         d = nearest_distances(ref_xyz, xyz[m], tree=tree) if m.any() else np.empty(0)
-        out.append({"chainage": float(c), "fitness": fitness(d, max_distance=max_distance),
-                    "points": int(m.sum())})
+        out.append(
+            {
+                "chainage": float(c),
+                "fitness": fitness(d, max_distance=max_distance),
+                "points": int(m.sum()),
+            }
+        )
     return out
 
 
