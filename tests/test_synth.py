@@ -343,3 +343,35 @@ def test_people_and_belt_shadow():
     free = wall & (pr.vertical > -0.2) & (pr.vertical < 0.6)
     ratio = (band.sum() / 0.2) / (free.sum() / 0.8)
     assert ratio == pytest.approx(0.2, abs=0.05)
+
+
+def test_static_roughness_is_shared_by_both_epochs():
+    from scipy.spatial import cKDTree
+
+    tunnel = TunnelSpec(length=12.0, density=400.0, roughness=0.03, **CLEAN)
+    pair = make_pair(
+        tunnel=tunnel,
+        cmp_shift=0.0,
+        seed=6,
+        deformations=(DeformationSpec(chainage=6.0, amplitude=0.05),),
+    )
+    t = pair.truth
+    ref_pr = t.centerline.project(pair.ref.xyz)
+    ref_off = t.outline.signed_distance(ref_pr.lateral, ref_pr.vertical)
+    keep = ref_pr.inside & _away_from_corners(ref_pr.lateral, ref_pr.vertical, 0.2)
+    assert ref_off[keep].std() == pytest.approx(0.03, rel=0.25)
+    cmp_pr = t.centerline.project(t.cmp_xyz_in_ref)
+    cmp_off = t.outline.signed_distance(cmp_pr.lateral, cmp_pr.vertical) - t.displacement
+    _, j = cKDTree(pair.ref.xyz).query(t.cmp_xyz_in_ref)
+    sel = (t.label == LABEL_SHELL) & keep[j]
+    assert np.median(np.abs(cmp_off - ref_off[j])[sel]) < 0.003
+
+
+def test_cmp_centerline_in_cmp_frame():
+    pair = make_pair(
+        tunnel=TunnelSpec(length=15.0, density=40.0, radius=50.0, **CLEAN), cmp_shift=2.0, seed=9
+    )
+    line = pair.truth.cmp_centerline
+    assert line.length == pytest.approx(15.0, abs=1e-9)
+    pr = line.project(pair.cmp.xyz)
+    np.testing.assert_allclose(pr.chainage + 2.0, pair.truth.chainage, atol=3e-3)

@@ -172,6 +172,9 @@ class TunnelSpec:
         People standing in the walkway per epoch (label 2, dynamic), placed anew each epoch.
     uneven_density : float
         Amplitude in [0, 1) of a smooth multiplicative modulation of density along chainage.
+    roughness : float
+        Standard deviation of a smooth static relief of the shell about the design outline, m
+        (wavelengths 0.8-8 m; the same in both epochs, so it is not a displacement).
     chamber_chainage, chamber_depth, chamber_length, chamber_side
         Centre chainage (None: mid-length), depth into the wall, length along the axis (m) and
         side of the chamber.
@@ -192,6 +195,7 @@ class TunnelSpec:
     holes: int = 0
     people: int = 0
     uneven_density: float = 0.0
+    roughness: float = 0.0
     chamber_chainage: float | None = None
     chamber_depth: float = 2.0
     chamber_length: float = 4.0
@@ -226,6 +230,8 @@ class TunnelSpec:
                 raise ConfigError(f"{name} must be 'left' or 'right', got {getattr(self, name)!r}")
         _positive("chamber_depth", self.chamber_depth)
         _positive("chamber_length", self.chamber_length)
+        if not np.isfinite(self.roughness) or not 0 <= self.roughness < 0.25:
+            raise ConfigError(f"roughness must be in [0, 0.25) m, got {self.roughness!r}")
         if int(self.people) != self.people or self.people < 0:
             raise ConfigError(f"people must be a non-negative integer, got {self.people!r}")
 
@@ -563,6 +569,7 @@ class _Scene:
     pipes: tuple[tuple[float, float, float, int], ...]  # (u, v, radius, component)
     conveyor: dict | None
     chamber: dict | None
+    relief: np.ndarray | None  # rows (amplitude, along wavenumber, around wavenumber, phase)
     scanner: tuple[float, float]  # (u, v) of the walking line
 
 
@@ -625,7 +632,30 @@ def _make_scene(tunnel: TunnelSpec, rng: np.random.Generator) -> _Scene:
     # the surveyor walks off the conveyor's side, the scanner held at about 1.5 m
     walk = 0.0 if conveyor is None else -0.6 * conveyor["sign"]
     scanner = (walk, -h2 + min(1.5, 0.6 * sec.height))
-    return _Scene(tunnel, outline, axis, tuple(pipes), conveyor, chamber, scanner)
+    relief = None
+    if tunnel.roughness > 0:
+        k = 32
+        lam = rng.uniform(0.8, 8.0, k)
+        harmonic = rng.integers(1, max(2, int(outline.perimeter / 0.8)), k)
+        relief = np.stack(
+            [
+                np.full(k, tunnel.roughness * np.sqrt(2.0 / k)),
+                2 * np.pi / lam * rng.choice([-1.0, 1.0], k),
+                harmonic.astype(float),
+                rng.uniform(0, 2 * np.pi, k),
+            ],
+            axis=1,
+        )
+        relief[:, 2] *= 2 * np.pi / outline.perimeter  # periodic around the outline
+    return _Scene(tunnel, outline, axis, tuple(pipes), conveyor, chamber, relief, scanner)
+
+
+def _relief(relief: np.ndarray, s: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Static shell relief (outward offset, m) at chainage ``s`` and perimeter position ``p``."""
+    out = np.zeros_like(s)
+    for amp, ks, kp, ph in relief:
+        out += amp * np.cos(ks * s + kp * p + ph)
+    return out
 
 
 def _draw_heaps(rng: np.random.Generator, s0: float, s1: float) -> np.ndarray:
@@ -728,6 +758,11 @@ class _Epoch:
         if hidden is not None:  # a moving handheld scanner still sees some of it
             m &= ~hidden | (rng.random(n) < _SHADOW_SEEN)
         s, p, u, v, nu, nv, surface = (a[m] for a in (s, p, u, v, nu, nv, surface))
+        if sc.relief is not None:  # static rock relief, outward positive
+            off = _relief(sc.relief, s, p)
+            u -= off * nu
+            v -= off * nv
+            del off
         disp = np.zeros(s.shape[0])
         for d in deformations:
             pc = _patch_centre(out, d)
@@ -1069,6 +1104,13 @@ class PairTruth:
     yaw_deg: float
     tilt_deg: float
     tilt_axis: np.ndarray
+
+    @property
+    def cmp_centerline(self) -> Centerline:
+        """The design axis over the compared stretch, in the compared epoch's frame (its
+        chainage 0 at the start of the compared stretch)."""
+        axis = _Axis(self.centerline.meta["radius"], self.centerline.meta["grade"])
+        return axis.centerline(*self.cmp_range).transformed(np.linalg.inv(self.transform))
 
 
 @dataclass(frozen=True)
