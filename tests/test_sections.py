@@ -1,0 +1,201 @@
+"""Surface labels and per-section statistics (paper §3.3.2, Table 4)."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+import pytest
+
+from tunneldef.deformation import DeformationResult, compute_deformation
+from tunneldef.deformation.sections import (
+    FLOOR,
+    LEFT_WALL,
+    RIGHT_WALL,
+    ROOF,
+    SURFACE_NAMES,
+    section_statistics,
+    surface_labels,
+    write_sections_csv,
+)
+from tunneldef.errors import ConfigError, InvalidCloudError
+from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
+
+
+def _rectangle(rng, n, *, width=5.8, height=2.86, length=10.0, centre=(0.0, 0.0)):
+    """Points on a rectangular section outline swept along chainage 0..length, with labels."""
+    perim = 2 * (width + height)
+    t = rng.uniform(0, perim, n)
+    lat = np.empty(n)
+    ver = np.empty(n)
+    lab = np.empty(n, np.uint8)
+    w, h = width / 2, height / 2
+    a = t < width
+    lat[a], ver[a], lab[a] = w - t[a], h, ROOF
+    b = (t >= width) & (t < width + height)
+    lat[b], ver[b], lab[b] = -w, h - (t[b] - width), RIGHT_WALL
+    c = (t >= width + height) & (t < 2 * width + height)
+    lat[c], ver[c], lab[c] = -w + (t[c] - width - height), -h, FLOOR
+    e = t >= 2 * width + height
+    lat[e], ver[e], lab[e] = w, -h + (t[e] - 2 * width - height), LEFT_WALL
+    return rng.uniform(0, length, n), lat - centre[0], ver - centre[1], lab
+
+
+def _result(
+    chainage, deformation, *, surface=None, shell=None, horizontal=None, vertical=None, length=None
+) -> DeformationResult:
+    n = len(chainage)
+    z = np.zeros(n)
+    return DeformationResult(
+        deformation=np.asarray(deformation, float),
+        horizontal=z if horizontal is None else np.asarray(horizontal, float),
+        vertical=z if vertical is None else np.asarray(vertical, float),
+        chainage=np.asarray(chainage, float),
+        surface=np.zeros(n, np.uint8) if surface is None else np.asarray(surface, np.uint8),
+        shell=np.ones(n, bool) if shell is None else np.asarray(shell, bool),
+        xyz=np.c_[chainage, z, z],
+        centerline_length=length,
+    )
+
+
+# --- surface labels ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("centre", [(0.0, 0.0), (0.4, -0.2)])
+def test_surface_labels_on_a_rectangle(centre):
+    rng = np.random.default_rng(0)
+    s, lat, ver, truth = _rectangle(rng, 20000, centre=centre)
+    lab = surface_labels(s, lat, ver, step=1.0)
+    # every point is labelled by the diagonal through the section's corners; only points
+    # within ~5 % of a corner may differ
+    assert np.mean(lab == truth) > 0.99
+    for code in range(4):
+        assert np.mean(lab[truth == code] == code) > 0.98, SURFACE_NAMES[code]
+
+
+def test_surface_labels_edge_cases():
+    assert surface_labels(np.empty(0), np.empty(0), np.empty(0)).shape == (0,)
+    with pytest.raises(ConfigError, match="section step must be > 0 m"):
+        surface_labels(np.zeros(3), np.zeros(3), np.zeros(3), step=0.0)
+
+
+# --- statistics -------------------------------------------------------------------------------
+
+
+def test_section_statistics_known_numbers():
+    # points every 1 cm along chainage 0..3; section k holds the points within 0.1 m of k
+    s = np.round(np.arange(0.0, 3.0001, 0.01), 6)
+    sec = np.round(s)  # nearest section
+    d = np.where(np.abs(s - sec) <= 0.1 + 1e-9, -0.01 * (sec + 1), 9.0)  # 9.0 between sections
+    surface = np.where(np.arange(s.size) % 2 == 0, ROOF, LEFT_WALL)
+    vertical = np.where(surface == ROOF, d, 0.0)
+    horizontal = np.where(surface == LEFT_WALL, d, 0.0)
+    shell = np.ones(s.size, bool)
+    shell[np.isclose(s, 1.0)] = False  # one non-shell point at the middle section
+    r = _result(
+        s, d, surface=surface, shell=shell, horizontal=horizontal, vertical=vertical, length=3.0
+    )
+    rows = section_statistics(r, step=1.0, thickness=0.2)
+    assert [row["chainage"] for row in rows] == [0.0, 1.0, 2.0, 3.0]
+    n = [row["n_points"] for row in rows]
+    assert n == [11, 21, 21, 11]  # ends hold one side only
+    assert [row["n_shell"] for row in rows] == [11, 20, 21, 11]
+    for k, row in enumerate(rows):
+        assert row["mean"] == pytest.approx(-0.01 * (k + 1))
+        assert row["std"] == pytest.approx(0.0, abs=1e-12)
+        assert row["mean_abs"] == pytest.approx(0.01 * (k + 1))
+        assert row["min"] == row["max"] == pytest.approx(-0.01 * (k + 1))
+        assert row["roof_n"] + row["left_wall_n"] == row["n_shell"]
+        assert row["floor_n"] == row["right_wall_n"] == 0
+        assert math.isnan(row["floor_mean"])
+        assert row["roof_mean_vertical"] == pytest.approx(-0.01 * (k + 1))
+        assert row["left_wall_mean_horizontal"] == pytest.approx(-0.01 * (k + 1))
+        # half the points are roof (vertical), half wall (horizontal)
+        frac_roof = row["roof_n"] / row["n_shell"]
+        assert row["mean_vertical"] == pytest.approx(-0.01 * (k + 1) * frac_roof)
+
+
+def test_section_statistics_spread_and_range():
+    rng = np.random.default_rng(3)
+    s = rng.uniform(-2.0, 12.0, 50000)
+    d = rng.normal(0.004, 0.02, s.size)
+    rows = section_statistics(_result(s, d, length=10.0), step=2.0, thickness=0.5)
+    # clipped to the centreline [0, 10]
+    assert [row["chainage"] for row in rows] == [0.0, 2.0, 4.0, 6.0, 8.0, 10.0]
+    for row in rows:
+        assert row["n_points"] == pytest.approx(50000 * 0.5 / 14, rel=0.15)
+        assert row["mean"] == pytest.approx(0.004, abs=0.003)
+        assert row["std"] == pytest.approx(0.02, rel=0.1)
+    rows = section_statistics(_result(s, d, length=10.0), step=2.0, thickness=0.5, start=-2.0)
+    assert rows[0]["chainage"] == -2.0
+
+
+def test_section_statistics_errors():
+    r = _result(np.zeros(3), np.zeros(3))
+    with pytest.raises(ConfigError, match="section step must be > 0 m"):
+        section_statistics(r, step=0.0)
+    with pytest.raises(ConfigError, match="section thickness must be > 0 m"):
+        section_statistics(r, thickness=-1.0)
+    with pytest.raises(InvalidCloudError, match="no points to compute section statistics"):
+        section_statistics(_result(np.empty(0), np.empty(0)))
+
+
+def test_write_sections_csv_round_trip(tmp_path):
+    rows = [
+        {"chainage": 1.0, "n_points": 5, "mean": -0.0123456789},
+        {"chainage": 2.0, "n_points": 0, "mean": math.nan, "roof_n": 3},
+    ]
+    path = tmp_path / "sections.csv"
+    write_sections_csv(rows, path)
+    with path.open(newline="") as f:
+        back = list(csv.DictReader(f))
+    assert list(back[0]) == ["chainage", "n_points", "mean", "roof_n"]
+    assert float(back[0]["mean"]) == pytest.approx(-0.0123457, rel=1e-5)
+    assert back[0]["roof_n"] == "" and back[1]["roof_n"] == "3"
+    assert math.isnan(float(back[1]["mean"]))
+    assert [p.name for p in tmp_path.iterdir()] == ["sections.csv"]  # no temp file left
+
+
+def test_write_sections_csv_leaves_nothing_on_failure(tmp_path):
+    class Boom(float):
+        def __format__(self, spec):
+            raise RuntimeError("boom")
+
+    path = tmp_path / "sections.csv"
+    with pytest.raises(RuntimeError, match="boom"):
+        write_sections_csv([{"chainage": Boom(1.0)}], path)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(FileNotFoundError):
+        write_sections_csv([{"chainage": 1.0}], tmp_path / "missing" / "s.csv")
+
+
+# --- on a synthetic pair: a roof sag shows up in its sections ---------------------------------
+
+
+def test_sections_of_a_roof_sag():
+    pair = make_pair(
+        PairSpec(
+            tunnel=TunnelSpec(length=12.0),
+            deformations=(DeformationSpec(kind="roof_sag", chainage=6.0, amplitude=0.03),),
+            cmp_shift=0.0,
+            cmp_length=12.0,
+            seed=4,
+        )
+    )
+    t = pair.truth
+    d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, shell=t.label == 0)
+    rows = {row["chainage"]: row for row in section_statistics(d, step=1.0, thickness=0.2)}
+    assert sorted(rows) == [float(k) for k in range(13)]
+    sag = rows[6.0]
+    sel = (np.abs(t.chainage - 6.0) <= 0.1) & (t.label == 0) & (d.surface == 0)
+    truth = t.displacement[sel].mean()  # ~ -5 mm: 2 m wide patch, cos^2 across, 5.8 m roof
+    assert sag["roof_n"] == sel.sum()
+    assert sag["roof_mean"] == pytest.approx(truth, abs=0.002)
+    assert 0.6 < sag["roof_mean_vertical"] / truth < 1.1  # the KNN centroid attenuates ~20 %
+    assert abs(sag["floor_mean_vertical"]) < 0.003
+    assert sag["min"] < -0.05
+    for k in (1.0, 2.0, 10.0, 11.0):
+        assert abs(rows[k]["roof_mean_vertical"]) < 0.004
+        assert abs(rows[k]["mean_horizontal"]) < 0.004
+        assert 0.015 < rows[k]["mean_abs"] < 0.035  # the noise level (paper Table 4: 27 mm)
