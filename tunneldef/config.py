@@ -76,7 +76,8 @@ class CenterlineConfig:
                                   "than centres, so the least-squares curve smooths their noise")
     sample_step: float = _p(0.05, "ours: spacing of centreline samples, m")
     max_iterations: int = _p(3, "ours: re-slicing passes normal to the curve (curved tunnels)")
-    converge_tol: float = _p(0.005, "ours: stop re-slicing when the curve moves less (p95), m")
+    converge_tol: float = _p(0.01, "ours: stop re-slicing when the curve moves less (p95), "
+                                   "m; about twice the noise of the slice centres")
     min_slices: int = _p(5, "ours: fewer accepted slices and there is no centreline")
     vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)")
 

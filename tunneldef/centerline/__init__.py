@@ -156,6 +156,13 @@ class CenterlineResult:
     def accepted(self) -> list[SliceRecord]:
         return [r for r in self.slices if r.ok]
 
+    def to_world(self, local: np.ndarray) -> np.ndarray:
+        """World (N, 3) coordinates of (along, lateral, vertical) in the last pass's axes."""
+        local = np.atleast_2d(np.asarray(local, dtype=np.float64))
+        if self.axis is None:
+            return self.frame.to_world(local)
+        return _curve_to_world(self.axis)(local)
+
     def slice_coordinates(self, xyz: np.ndarray) -> np.ndarray:
         """(N, 3) along / lateral / vertical coordinates of points in the last pass's axes."""
         return _axis_coordinates(xyz, self.axis, self.frame)
@@ -322,9 +329,11 @@ def _fit(records: list[SliceRecord], cfg: Config, meta: dict) -> Centerline:
 
 
 def _shift(new: Centerline, old: Centerline) -> float:
+    """How far a refitted curve moved: 95th percentile of its distance to the previous one
+    (the maximum would measure the slice noise at the free ends)."""
     p = old.project(new.points)
     d = p.distance[p.inside]
-    return float(d.max()) if d.size else np.inf
+    return float(np.percentile(d, 95)) if d.size else np.inf
 
 
 def extract_centerline(

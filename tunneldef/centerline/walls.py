@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import convolve1d, gaussian_filter, sobel
+from scipy.ndimage import convolve1d, gaussian_filter, sobel, uniform_filter1d
 from skimage.feature import canny
 from skimage.transform import hough_line, hough_line_peaks
 
@@ -86,6 +86,17 @@ def _triangle(half_width: int) -> np.ndarray:
     return k / k.sum()
 
 
+def _smooth(img: np.ndarray, half_width: int, axis: int) -> np.ndarray:
+    m = half_width + 1
+    if m % 2:  # odd box: two passes of a centred box of m pixels are exactly the triangle
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (m, m)
+        out = uniform_filter1d(np.pad(img, pad), m, axis=axis, mode="constant")
+        out = uniform_filter1d(out, m, axis=axis, mode="constant")
+        return out[m:-m] if axis == 0 else out[:, m:-m]
+    return convolve1d(img, _triangle(half_width), axis=axis, mode="constant")
+
+
 def linear_kernel_density(counts: np.ndarray, *, half_widths: tuple[int, int]) -> np.ndarray:
     """2-D linear-kernel density of a count image, separable (rows, then columns).
 
@@ -95,16 +106,21 @@ def linear_kernel_density(counts: np.ndarray, *, half_widths: tuple[int, int]) -
         Points per pixel.
     half_widths : (int, int)
         Kernel half-widths in pixels along rows (axis 0) and columns (axis 1).
+
+    Notes
+    -----
+    The triangle 1 - |i| / m is the convolution of two boxes of m pixels, so for odd m it is
+    computed as two running means (cost independent of the kernel width).
     """
-    img = convolve1d(counts.astype(np.float64), _triangle(half_widths[0]), axis=0, mode="constant")
-    return convolve1d(img, _triangle(half_widths[1]), axis=1, mode="constant")
+    img = _smooth(counts.astype(np.float64), half_widths[0], 0)
+    return _smooth(img, half_widths[1], 1)
 
 
 def _hough_lines(edges: np.ndarray, *, max_slope_px: float, peak_ratio: float) -> np.ndarray:
     """Near-horizontal Hough lines of an edge image as (row at the centre column, drow/dcol)."""
     n_rows, n_cols = edges.shape
     a = max(np.arctan(max_slope_px), 2.0 / n_cols)
-    n_angles = int(np.clip(np.ceil(2 * a * n_cols), 3, 61))
+    n_angles = int(np.clip(np.ceil(8 * a * n_cols) + 1, 9, 91))  # quarter-pixel steps
     theta = np.pi / 2 + np.linspace(-a, a, n_angles)
     h, angles, dists = hough_line(edges, theta=theta)
     if h.max() == 0:
@@ -206,10 +222,11 @@ def wall_lines(
     u_min, u_max = station - thickness / 2, station + thickness / 2
     cell_u = thickness / n
     counts, _, _ = np.histogram2d(-v, u, bins=(n, n), range=((-v_max, -v_min), (u_min, u_max)))
-    half = (max(1, round(kernel_half_width / cell)), max(1, n // 4))
+    half = (2 * max(1, round(kernel_half_width / cell / 2)), 2 * max(1, n // 8))
     image = linear_kernel_density(counts, half_widths=half)
     image /= max(image.max(), 1e-300)
-    grad = np.hypot(sobel(gaussian_filter(image, 1.0), 0), sobel(gaussian_filter(image, 1.0), 1))
+    smooth = gaussian_filter(image, 1.0)
+    grad = np.hypot(sobel(smooth, 0), sobel(smooth, 1))
     gmax = float(grad.max())
     edges = canny(image, sigma=1.0, low_threshold=0.1 * gmax, high_threshold=0.25 * gmax)
     max_slope_px = np.tan(np.radians(max_angle_deg)) * cell_u / cell
