@@ -170,16 +170,18 @@ def _voxel_normals(
     ijk = np.floor((ref - lo) / spacing).astype(np.int64)
     keys, inv = np.unique(ijk @ strides, return_inverse=True)
     inv = inv.ravel()
-    vijk = np.stack([keys % dims[0], (keys // dims[0]) % dims[1], keys // (dims[0] * dims[1])],
-                    axis=1)
+    vijk = np.stack(
+        [keys % dims[0], (keys // dims[0]) % dims[1], keys // (dims[0] * dims[1])], axis=1
+    )
     centre = lo + (vijk + 0.5) * spacing
     rel = ref - centre[inv]
     nv = len(keys)
     cnt = np.bincount(inv, minlength=nv).astype(np.float64)
     s1 = np.stack([np.bincount(inv, weights=rel[:, i], minlength=nv) for i in range(3)], axis=1)
     pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-    s2 = np.stack([np.bincount(inv, weights=rel[:, i] * rel[:, j], minlength=nv)
-                   for i, j in pairs], axis=1)
+    s2 = np.stack(
+        [np.bincount(inv, weights=rel[:, i] * rel[:, j], minlength=nv) for i, j in pairs], axis=1
+    )
 
     cijk = np.floor((cores - lo) / spacing).astype(np.int64)
     ckey = cijk @ strides
@@ -201,8 +203,9 @@ def _voxel_normals(
         n_c[hit] += c_
         m1[hit] += a1 + c_[:, None] * d
         for col, (i, j) in enumerate(pairs):
-            m2[hit, col] += (a2[:, col] + a1[:, i] * d[:, j] + d[:, i] * a1[:, j]
-                             + c_ * d[:, i] * d[:, j])
+            m2[hit, col] += (
+                a2[:, col] + a1[:, i] * d[:, j] + d[:, i] * a1[:, j] + c_ * d[:, i] * d[:, j]
+            )
         del k
     safe = np.maximum(n_c, 1.0)
     mean = m1 / safe[:, None]
@@ -219,7 +222,12 @@ def _voxel_normals(
 
 
 def _clipped_stats(
-    group: np.ndarray, values: np.ndarray, ngroups: int, *, k: float = 3.0, floor: float = 0.005,
+    group: np.ndarray,
+    values: np.ndarray,
+    ngroups: int,
+    *,
+    k: float = 3.0,
+    floor: float = 0.005,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robustly clipped mean, standard deviation and count of ``values`` per group.
 
@@ -293,7 +301,7 @@ def robust_deformation(
     normal_radius: float = 0.3,
     cylinder_radius: float = 0.2,
     max_depth: float = 0.3,
-    core_spacing: float = 0.1,
+    core_spacing: float = 0.2,
     min_points: int = 5,
     registration_sigma: float = 0.0,
     ref_mask: np.ndarray | None = None,
@@ -356,8 +364,7 @@ def robust_deformation(
     cylinder_radius = _check_positive("cylinder_radius", cylinder_radius)
     max_depth = _check_positive("max_depth", max_depth)
     core_spacing = _check_positive("core_spacing", core_spacing)
-    registration_sigma = _check_positive("registration_sigma", registration_sigma,
-                                         allow_zero=True)
+    registration_sigma = _check_positive("registration_sigma", registration_sigma, allow_zero=True)
     if int(min_points) < 1:
         raise ConfigError(f"min_points must be at least 1, got {min_points!r}")
     ref_use = ref if ref_mask is None else ref[_check_mask(ref_mask, len(ref), "ref_mask")]
@@ -405,23 +412,29 @@ def robust_deformation(
     for start in range(0, n_cores, _CHUNK):
         sl = slice(start, min(start + _CHUNK, n_cores))
         c, nrm = cores[sl], normal[sl]
-        stats = [*_epoch_stats(*ref_epoch, c, nrm, cylinder_radius, short, workers),
-                 *_epoch_stats(*cmp_epoch, c, nrm, cylinder_radius, short, workers)]
+        stats = [
+            *_epoch_stats(*ref_epoch, c, nrm, cylinder_radius, short, workers),
+            *_epoch_stats(*cmp_epoch, c, nrm, cylinder_radius, short, workers),
+        ]
         if max_depth > short:
             deep = (stats[2] < min_points) | ~(
-                np.abs(stats[0]) < short - 3.0 * np.maximum(stats[1], 0.01))
+                np.abs(stats[0]) < short - 3.0 * np.maximum(stats[1], 0.01)
+            )
             if deep.any():
                 n_deep += int(deep.sum())
-                ref_deep = _epoch_stats(*ref_epoch, c[deep], nrm[deep], cylinder_radius,
-                                        max_depth, workers)
+                ref_deep = _epoch_stats(
+                    *ref_epoch, c[deep], nrm[deep], cylinder_radius, max_depth, workers
+                )
                 for s_, w in zip(stats[:3], ref_deep, strict=True):
                     s_[deep] = w
         weak = (stats[2] < min_points) | (stats[5] < min_points)
         if weak.any():
             n_fallback += int(weak.sum())
             cw, nw, rw = c[weak], nrm[weak], 2.0 * cylinder_radius
-            wide = [*_epoch_stats(*ref_epoch, cw, nw, rw, max_depth, workers),
-                    *_epoch_stats(*cmp_epoch, cw, nw, rw, short, workers)]
+            wide = [
+                *_epoch_stats(*ref_epoch, cw, nw, rw, max_depth, workers),
+                *_epoch_stats(*cmp_epoch, cw, nw, rw, short, workers),
+            ]
             for s_, w in zip(stats, wide, strict=True):
                 s_[weak] = w
         for key, s_ in zip(out, stats, strict=True):
@@ -433,13 +446,21 @@ def robust_deformation(
     with np.errstate(invalid="ignore", divide="ignore"):
         lod = _Z95 * (np.sqrt(out["sr"] ** 2 / n_r + out["sc"] ** 2 / n_c) + registration_sigma)
     lod[~np.isfinite(d_mean)] = np.nan
-    point_core = _assign_cores(cmp_ - origin, inverse, cores, normal, variation,
-                               np.isfinite(d_mean), reach=normal_radius + 2.0 * core_spacing,
-                               workers=workers)
+    point_core = _assign_cores(
+        cmp_ - origin,
+        inverse,
+        cores,
+        normal,
+        variation,
+        np.isfinite(d_mean),
+        reach=normal_radius + 2.0 * core_spacing,
+        workers=workers,
+    )
     n_nan = int((~np.isfinite(d_mean)).sum())
     if n_nan:
-        logger.info("%d of %d cores have no reference surface within %.2f m", n_nan, n_cores,
-                    max_depth)
+        logger.info(
+            "%d of %d cores have no reference surface within %.2f m", n_nan, n_cores, max_depth
+        )
     d = d_mean[point_core]
     lod_p = lod[point_core]
     inverse = point_core
@@ -493,8 +514,15 @@ def _epoch_stats(tree, pts, pt_normals, cores, normals, radius, depth, workers):
 
 
 def _assign_cores(
-    pts: np.ndarray, inverse: np.ndarray, cores: np.ndarray, normals: np.ndarray,
-    variation: np.ndarray, valid: np.ndarray, *, reach: float, workers: int,
+    pts: np.ndarray,
+    inverse: np.ndarray,
+    cores: np.ndarray,
+    normals: np.ndarray,
+    variation: np.ndarray,
+    valid: np.ndarray,
+    *,
+    reach: float,
+    workers: int,
 ) -> np.ndarray:
     """Core whose value each compared point takes.
 
@@ -510,8 +538,7 @@ def _assign_cores(
         return point_core
     ids = np.flatnonzero(planar)
     k = min(_K_ASSIGN, ids.size)
-    dist, j = cKDTree(cores[ids]).query(pts[move], k=k, distance_upper_bound=reach,
-                                        workers=workers)
+    dist, j = cKDTree(cores[ids]).query(pts[move], k=k, distance_upper_bound=reach, workers=workers)
     dist, j = dist.reshape(len(move), k), j.reshape(len(move), k)
     found = np.isfinite(dist)
     jj = ids[np.where(found, j, 0)]
@@ -526,6 +553,7 @@ def _assign_cores(
 def _check_mask(mask: np.ndarray, n: int, name: str) -> np.ndarray:
     m = np.asarray(mask)
     if m.shape != (n,) or m.dtype != bool:
-        raise InvalidCloudError(f"{name} must be a boolean array of shape ({n},), got "
-                                f"{m.dtype} {m.shape}")
+        raise InvalidCloudError(
+            f"{name} must be a boolean array of shape ({n},), got {m.dtype} {m.shape}"
+        )
     return m

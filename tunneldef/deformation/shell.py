@@ -1,0 +1,251 @@
+"""Tunnel shell versus everything in front of it, from the cross-section geometry.
+
+Attached equipment (pipes, cables), the conveyor and its load, people and stray points all lie
+*inside* the tunnel: seen from the centreline, the shell is the outermost surface in every
+direction. :func:`classify_shell` cuts the cloud into chainage windows and angular sectors
+around the centreline, takes an outer anchor in each (window, sector) bin, joins the anchors
+of a window into a closed outer envelope (piecewise linear in angle), and keeps as shell the
+points within a tolerance of that envelope.
+
+Everything is vectorised over all bins at once (one sort of all points by (bin, radius), one
+``np.interp`` over the concatenated envelopes of all windows); there is no loop over points
+or bins.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from ..centerline.curve import Centerline
+from ..cloud import check_points
+from ..errors import ConfigError
+
+__all__ = ["classify_shell", "outer_envelope"]
+
+logger = logging.getLogger(__name__)
+
+_WINDOW_PERIOD = 20.0  # > 6 pi: angle axis offset per window in the concatenated envelopes
+
+
+def _positive(name: str, value: float) -> float:
+    value = float(value)
+    if not np.isfinite(value) or value <= 0.0:
+        raise ConfigError(f"{name} must be a positive number, got {value!r}")
+    return value
+
+
+def _bins(window: np.ndarray, theta: np.ndarray, sectors: int) -> tuple[np.ndarray, np.ndarray]:
+    """Dense window ids (N,) and (window, sector) bin ids (N,)."""
+    wid = np.unique(window, return_inverse=True)[1].ravel().astype(np.int64)
+    sec = np.clip(((theta + np.pi) / (2 * np.pi) * sectors).astype(np.int64), 0, sectors - 1)
+    return wid, wid * sectors + sec
+
+
+def _ring(
+    wid: np.ndarray,
+    theta: np.ndarray,
+    a_win: np.ndarray,
+    a_theta: np.ndarray,
+    a_rho: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closed polygon of each window through its anchors (in order of angle), evaluated along
+    each point's ray from the centreline.
+
+    Returns the radius where the point's ray crosses its window's polygon and the obliquity
+    ``1 / |cos(incidence)|`` of that polygon edge to the ray.
+    """
+    o = np.lexsort((a_theta, a_win))
+    a_win, a_theta, a_rho = a_win[o], a_theta[o], a_rho[o]
+    w_start = np.flatnonzero(np.r_[True, a_win[1:] != a_win[:-1]])
+    w_end = np.r_[w_start[1:], len(a_win)] - 1
+    x = np.concatenate([a_theta[w_end] - 2 * np.pi, a_theta, a_theta[w_start] + 2 * np.pi])
+    y = np.concatenate([a_rho[w_end], a_rho, a_rho[w_start]])
+    w = np.concatenate([a_win[w_end], a_win, a_win[w_start]])
+    xo = x + _WINDOW_PERIOD * w
+    oo = np.argsort(xo, kind="stable")
+    xo, th, y = xo[oo], x[oo], y[oo]
+    q = theta + _WINDOW_PERIOD * wid
+    seg = np.clip(np.searchsorted(xo, q, side="right") - 1, 0, len(xo) - 2)
+    ax, ay = y[seg] * np.cos(th[seg]), y[seg] * np.sin(th[seg])
+    ex = y[seg + 1] * np.cos(th[seg + 1]) - ax
+    ey = y[seg + 1] * np.sin(th[seg + 1]) - ay
+    dx, dy = np.cos(theta), np.sin(theta)
+    den = dx * ey - dy * ex
+    length = np.hypot(ex, ey)
+    ok = np.abs(den) > 1e-9 * np.maximum(length, 1e-12)
+    envelope = np.interp(q, xo, y)  # fallback for degenerate edges
+    envelope[ok] = ((ax * ey - ay * ex)[ok]) / den[ok]
+    obliquity = np.full(theta.shape, 1.0)
+    cos_inc = np.abs(den) / np.maximum(length, 1e-12)
+    obliquity[ok] = 1.0 / np.maximum(cos_inc[ok], 1e-3)
+    return envelope, obliquity
+
+
+def _hull_anchors(a_win: np.ndarray, a_theta: np.ndarray, a_rho: np.ndarray) -> np.ndarray:
+    """Mask of the anchors on the convex hull of their window (section outlines are convex:
+    objects in front of the shell dent the anchors inward and drop off the hull)."""
+    keep = np.zeros(len(a_win), dtype=bool)
+    order = np.argsort(a_win, kind="stable")
+    bounds = np.flatnonzero(np.r_[True, a_win[order][1:] != a_win[order][:-1], True])
+    pts = np.stack([a_rho * np.cos(a_theta), a_rho * np.sin(a_theta)], axis=1)
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):  # one hull per window
+        idx = order[lo:hi]
+        if len(idx) < 4:
+            keep[idx] = True
+            continue
+        try:
+            keep[idx[ConvexHull(pts[idx]).vertices]] = True
+        except QhullError:
+            keep[idx] = True
+    return keep
+
+
+def outer_envelope(
+    window: np.ndarray,
+    theta: np.ndarray,
+    rho: np.ndarray,
+    *,
+    sectors: int = 360,
+    rank: int = 1,
+    hull: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Outer envelope radius at each point's own angle, and the envelope's obliquity there.
+
+    Parameters
+    ----------
+    window : ndarray of int, shape (N,)
+        Chainage window of each point (any integers).
+    theta : ndarray, shape (N,)
+        Angle around the centreline, radians in [-pi, pi].
+    rho : ndarray, shape (N,)
+        Distance from the centreline, metres.
+    sectors : int
+        Angular sectors per turn.
+    rank : int
+        The anchor of a (window, sector) bin is its ``rank``-th largest radius (0 = the
+        largest), so that up to ``rank`` stray points beyond the shell do not move it.
+    hull : bool
+        Keep only the anchors on each window's convex hull (bridges over objects that hide
+        the shell over several sectors, e.g. a conveyor and its load).
+
+    Returns
+    -------
+    envelope : ndarray, shape (N,)
+        Radius of the envelope of the point's window at the point's angle, metres.
+    obliquity : ndarray, shape (N,)
+        ``sqrt(1 + (d rho / d theta)^2 / rho^2)`` of the envelope there (1 where the shell
+        faces the centreline; larger where it is seen at a grazing angle), so that a distance
+        along the shell normal ``t`` is about ``t * obliquity`` along the radius.
+    """
+    n = theta.shape[0]
+    wid, bin_ = _bins(window, theta, sectors)
+    order = np.lexsort((rho, bin_))
+    b_sorted = bin_[order]
+    starts = np.flatnonzero(np.r_[True, b_sorted[1:] != b_sorted[:-1]])
+    ends = np.r_[starts[1:], n]
+    pick = order[np.maximum(ends - 1 - rank, starts)]  # rank-th largest (or the smallest)
+    a_win, a_theta, a_rho = wid[pick], theta[pick], rho[pick]
+    if hull:
+        on = _hull_anchors(a_win, a_theta, a_rho)
+        a_win, a_theta, a_rho = a_win[on], a_theta[on], a_rho[on]
+    return _ring(wid, theta, a_win, a_theta, a_rho)
+
+
+def _mean_envelope(
+    window: np.ndarray, theta: np.ndarray, rho: np.ndarray, keep: np.ndarray, *, sectors: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Envelope through the mean (angle, radius) of the ``keep`` points of each bin."""
+    wid, bin_ = _bins(window, theta, sectors)
+    b, inv = np.unique(bin_[keep], return_inverse=True)
+    inv = inv.ravel()
+    cnt = np.bincount(inv).astype(np.float64)
+    m_theta = np.bincount(inv, weights=theta[keep]) / cnt
+    m_rho = np.bincount(inv, weights=rho[keep]) / cnt
+    return _ring(wid, theta, b // sectors, m_theta, m_rho)
+
+
+def classify_shell(
+    xyz: np.ndarray,
+    centerline: Centerline,
+    *,
+    window: float = 1.0,
+    sectors: int = 360,
+    inner_tolerance: float = 0.045,
+    outer_tolerance: float = 0.1,
+    search_tolerance: float = 0.12,
+    max_obliquity: float = 4.0,
+    workers: int = -1,
+) -> np.ndarray:
+    """Which points are the tunnel shell (True) rather than objects in front of it (False).
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (N, 3)
+        Points, metres, in the centreline's frame.
+    centerline : Centerline
+        Tunnel axis.
+    window : float
+        Length of the chainage windows, metres.
+    sectors : int
+        Angular sectors per turn around the centreline (360: 1 degree, about 5 cm of a 3 m
+        radius section).
+    inner_tolerance : float
+        Points more than this far inside the outer envelope (along the shell normal, metres)
+        are not shell: 0.1 m is about 6 sigma of the scanner's +-3 cm noise (paper §4, Table 1)
+        plus the anchor's own offset, while pipes, conveyors, coal and people stand further
+        off the rock.
+    outer_tolerance : float
+        Points more than this far beyond the envelope are not shell (stray returns), metres.
+    max_obliquity : float
+        Cap on the radial stretch of the tolerances where the shell is seen at a grazing angle
+        from the centreline (roof corners of a wide rectangular section).
+    workers : int
+        Threads for the centreline projection.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True on the shell.
+
+    Raises
+    ------
+    InvalidCloudError
+        If ``xyz`` is not N x 3 finite coordinates.
+    ConfigError
+        If a window, tolerance or sector count is not positive.
+
+    Notes
+    -----
+    (1) Project the points on the centreline: chainage ``s``, angle ``theta`` and radius
+    ``rho`` in the normal plane. (2) In each (window, sector) bin take the third-largest radius
+    and its angle as an anchor. (3) Join the anchors of a window into a closed, piecewise-linear
+    envelope ``rho_env(theta)`` and evaluate it at each point's own angle (so the envelope
+    follows the section shape inside a sector, e.g. a flat roof seen obliquely). (4) A point is
+    shell when ``-inner_tolerance * f <= rho - rho_env <= outer_tolerance * f``, ``f`` being
+    the envelope's obliquity (capped at ``max_obliquity``). Shell that is completely hidden
+    behind equipment within one bin cannot be seen and the equipment in front of it is then
+    taken as the outermost surface.
+    """
+    p = check_points(xyz, name="xyz")
+    window = _positive("window", window)
+    inner_tolerance = _positive("inner_tolerance", inner_tolerance)
+    outer_tolerance = _positive("outer_tolerance", outer_tolerance)
+    max_obliquity = _positive("max_obliquity", max_obliquity)
+    if int(sectors) < 8:
+        raise ConfigError(f"sectors must be an integer >= 8, got {sectors!r}")
+    proj = centerline.project(p, workers=workers)
+    theta = np.arctan2(proj.vertical, proj.lateral)
+    rho = proj.distance
+    win = np.floor(proj.chainage / window).astype(np.int64)
+    env, obl = outer_envelope(win, theta, rho, sectors=int(sectors))
+    off = rho - env
+    near = off >= -search_tolerance * np.minimum(obl, max_obliquity)
+    env, obl = _mean_envelope(win, theta, rho, near, sectors=int(sectors))
+    f = np.minimum(obl, max_obliquity)
+    off = rho - env
+    shell = (off >= -inner_tolerance * f) & (off <= outer_tolerance * f)
+    logger.debug("shell: %d of %d points", int(shell.sum()), len(shell))
+    return shell
