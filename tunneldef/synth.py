@@ -364,27 +364,29 @@ class Outline:
         Returns ``(u, v, nu, nv, surface)``, each shape (N,).
         """
         p = np.mod(np.asarray(p, dtype=np.float64), self.perimeter)
-        idx = np.clip(np.searchsorted(self.starts, p, side="right") - 1, 0, len(self.segments) - 1)
-        n = p.shape[0]
-        u, v, nu, nv = (np.empty(n) for _ in range(4))
-        surface = np.empty(n, dtype=np.uint8)
+        idx = np.searchsorted(self.starts, p, side="right") - 1
+        np.clip(idx, 0, len(self.segments) - 1, out=idx)
+        t = p - self.starts[idx]
+        # straight segments by table look-up, then arcs overwritten where there are any
+        tab = np.zeros((len(self.segments), 4))
         for k, seg in enumerate(self.segments):
-            m = idx == k
-            t = p[m] - self.starts[k]
             if seg[0] == "line":
                 (u0, v0), (u1, v1) = seg[1], seg[2]
-                du, dv = (u1 - u0) / self.lengths[k], (v1 - v0) / self.lengths[k]
-                u[m] = u0 + t * du
-                v[m] = v0 + t * dv
-                nu[m], nv[m] = -dv, du
-            else:
+                tab[k] = u0, v0, (u1 - u0) / self.lengths[k], (v1 - v0) / self.lengths[k]
+        du, dv = tab[idx, 2], tab[idx, 3]
+        u = tab[idx, 0] + t * du
+        v = tab[idx, 1] + t * dv
+        nu, nv = -dv, du
+        surface = np.array([seg[-1] for seg in self.segments], dtype=np.uint8)[idx]
+        for k, seg in enumerate(self.segments):
+            if seg[0] == "arc":
+                m = idx == k
                 (cu, cv), r, a0 = seg[1], seg[2], seg[3]
-                a = a0 + t / r
+                a = a0 + t[m] / r
                 ca, sa = np.cos(a), np.sin(a)
                 u[m] = cu + r * ca
                 v[m] = cv + r * sa
                 nu[m], nv[m] = -ca, -sa
-            surface[m] = seg[-1]
         return u, v, nu, nv, surface
 
     def signed_distance(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -754,9 +756,14 @@ class _Epoch:
         if ch is not None:
             wall = SURFACE_LEFT if ch["sign"] > 0 else SURFACE_RIGHT
             m &= ~((surface == wall) & (s > ch["s0"]) & (s < ch["s1"]))
-        hidden = self.shadow(u, v)
-        if hidden is not None:  # a moving handheld scanner still sees some of it
-            m &= ~hidden | (rng.random(n) < _SHADOW_SEEN)
+        if sc.pipes or sc.conveyor is not None:  # a moving handheld scanner sees some of it
+            # the shadow depends on the position around the outline only: a look-up table
+            step = 0.0005
+            grid = (np.arange(int(np.ceil(out.perimeter / step))) + 0.5) * step
+            gu, gv, *_ = out.evaluate(grid)
+            table = self.shadow(gu, gv)
+            cell = np.minimum((p / step).astype(np.intp), table.shape[0] - 1)
+            m &= ~table[cell] | (rng.random(n) < _SHADOW_SEEN)
         s, p, u, v, nu, nv, surface = (a[m] for a in (s, p, u, v, nu, nv, surface))
         if sc.relief is not None:  # static rock relief, outward positive
             off = _relief(sc.relief, s, p)
@@ -1181,6 +1188,13 @@ def make_tunnel(
     return cloud, truth
 
 
+def _apply(transform: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """``xyz`` (N, 3) mapped by a 4 x 4 rigid transform (einsum: no BLAS threads)."""
+    out = np.einsum("ij,kj->ik", xyz, transform[:3, :3])
+    out += transform[:3, 3]
+    return out
+
+
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
@@ -1240,11 +1254,9 @@ def make_pair(spec: PairSpec | None = None, **changes) -> SynthPair:
     transform[:3, 3] = -rot.T @ motion[:3, 3]
 
     local = cmp.pop("xyz")
-    cmp_xyz = local @ rot.T
-    cmp_xyz += motion[:3, 3]
+    cmp_xyz = _apply(motion, local)
     del local
-    in_ref = cmp_xyz @ transform[:3, :3].T
-    in_ref += transform[:3, 3]
+    in_ref = _apply(transform, cmp_xyz)
 
     ref_cloud = Cloud(
         ref["xyz"],
