@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -316,6 +318,7 @@ def test_write_pair(tmp_path):
     np.testing.assert_array_equal(truth["transform"], pair.truth.transform)
     np.testing.assert_array_equal(truth["label"], pair.truth.label)
     assert truth["cmp_xyz_in_ref"].shape == (len(pair.cmp), 3)
+    assert json.loads(str(truth["spec_json"]))["seed"] == 4
     try:
         from tunneldef.io import read
     except ImportError:

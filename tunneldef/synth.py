@@ -22,6 +22,7 @@ negative = the shell moved into the tunnel.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1295,7 +1296,8 @@ def write_pair(pair: SynthPair, out_dir: str | Path, *, fmt: str = "ply") -> dic
     """Write ``ref.<fmt>``, ``cmp.<fmt>`` and ``truth.npz`` into ``out_dir``.
 
     Clouds go through :func:`tunneldef.io.write` (only the ``intensity`` field; truth stays in
-    ``truth.npz``: every truth array, the 4 x 4 transform and the centreline samples).
+    ``truth.npz``: every truth array, the 4 x 4 transform, the centreline samples and the
+    pair's specification as JSON in ``spec_json``; ``np.load`` reads it without pickle).
 
     Returns
     -------
@@ -1333,6 +1335,7 @@ def write_pair(pair: SynthPair, out_dir: str | Path, *, fmt: str = "ply") -> dic
         centerline_chainage=t.centerline.chainage,
         ref_range=np.array(t.ref_range),
         cmp_range=np.array(t.cmp_range),
+        spec_json=np.array(json.dumps(dataclasses.asdict(pair.spec))),
     )
     return paths
 
