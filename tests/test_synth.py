@@ -84,13 +84,22 @@ def test_reference_shell_lies_on_design_section_within_noise():
 
 @pytest.mark.parametrize("kind", ["rectangle", "arch", "trapezoid"])
 def test_noise_free_points_sit_on_outline(kind):
-    cloud, truth = make_tunnel(
-        TunnelSpec(length=8.0, density=80.0, section=SectionSpec(kind=kind), **CLEAN)
+    defs = (
+        DeformationSpec("roof_sag", chainage=3.0, length=3.0, width=1.5, amplitude=0.06),
+        DeformationSpec("floor_heave", chainage=6.0, length=3.0, width=1.5, amplitude=0.04),
     )
+    spec = TunnelSpec(length=8.0, density=120.0, section=SectionSpec(kind=kind), **CLEAN)
+    cloud, truth = make_tunnel(spec, deformations=defs)
     pr = truth.centerline.project(cloud.xyz)
-    np.testing.assert_allclose(
-        truth.outline.signed_distance(pr.lateral, pr.vertical), 0.0, atol=1e-9
-    )
+    offset = truth.outline.signed_distance(pr.lateral, pr.vertical)
+    np.testing.assert_allclose(offset, truth.displacement, atol=1e-9)
+    assert truth.displacement.min() == pytest.approx(-0.06, abs=1e-3)
+    sag = truth.displacement < -1e-3
+    assert np.all(truth.surface[sag] != 255)
+    roof_z = cloud.xyz[sag & (truth.surface == SURFACE_ROOF), 2]
+    floor_z = cloud.xyz[sag & (truth.surface == SURFACE_FLOOR), 2]
+    assert roof_z.size > 20 and floor_z.size > 20
+    assert roof_z.max() < spec.section.height / 2 and floor_z.min() > -spec.section.height / 2
 
 
 def test_deformed_points_sit_where_truth_says():
