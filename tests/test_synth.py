@@ -263,6 +263,10 @@ def test_chamber_recess_depth():
     # the wall itself is open along the chamber
     wall = np.isclose(pr.lateral, W2, atol=1e-9) & (np.abs(pr.chainage - 15.0) < 1.9)
     assert wall.sum() == 0
+    # the chamber flag marks exactly the rock beyond the design outline
+    outside = truth.outline.signed_distance(pr.lateral, pr.vertical) > 1e-9
+    np.testing.assert_array_equal(truth.chamber, outside)
+    assert np.all(truth.label[truth.chamber] == LABEL_SHELL)
 
 
 def test_intensity_field_and_no_truth_on_clouds(busy_pair):

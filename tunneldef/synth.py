@@ -78,7 +78,9 @@ _DEFORMATION_KINDS = ("roof_sag", "wall_bulge", "floor_heave")
 _SIDES = ("left", "right")
 
 # component codes (internal; they set the intensity model)
-_C_SHELL, _C_PIPE, _C_CABLE, _C_BELT, _C_FRAME, _C_COAL, _C_OUTLIER, _C_PERSON = range(8)
+_C_SHELL, _C_PIPE, _C_CABLE, _C_BELT, _C_FRAME, _C_COAL, _C_OUTLIER, _C_PERSON, _C_CHAMBER = range(
+    9
+)
 _SHADOW_SEEN = 0.2  # share of shadowed shell a handheld scanner still records
 
 
@@ -840,9 +842,9 @@ class _Epoch:
         w2 = self.scene.tunnel.section.width / 2
         ub, vt = sg * ch["u_back"], ch["v_top"]
         kw = {"s0": ch["s0"], "s1": ch["s1"]}
-        self.sweep(ub, -h2, ub, vt, _C_SHELL, LABEL_SHELL, wall, **kw)  # back wall
-        self.sweep(sg * w2, -h2, ub, -h2, _C_SHELL, LABEL_SHELL, SURFACE_FLOOR, **kw)
-        self.sweep(sg * ch["u_top"], vt, ub, vt, _C_SHELL, LABEL_SHELL, SURFACE_ROOF, **kw)
+        self.sweep(ub, -h2, ub, vt, _C_CHAMBER, LABEL_SHELL, wall, **kw)  # back wall
+        self.sweep(sg * w2, -h2, ub, -h2, _C_CHAMBER, LABEL_SHELL, SURFACE_FLOOR, **kw)
+        self.sweep(sg * ch["u_top"], vt, ub, vt, _C_CHAMBER, LABEL_SHELL, SURFACE_ROOF, **kw)
 
         def inside(u, v):
             return np.abs(u) < out.half_width(v)
@@ -854,7 +856,7 @@ class _Epoch:
                 ub,
                 -h2,
                 vt,
-                _C_SHELL,
+                _C_CHAMBER,
                 LABEL_SHELL,
                 wall,
                 reject=inside,
@@ -1021,14 +1023,15 @@ class _Epoch:
             "displacement": cat["disp"],
             "label": cat["label"],
             "surface": cat["surface"],
+            "chamber": cat["comp"] == _C_CHAMBER,
             "intensity": intensity,
         }
 
 
 # base intensity and log-normal spread per component: rock/coal-face shell, pipes (painted
 # metal), cables, rubber belt, steel frame, coal (dark), outliers (dust, people: anything)
-_INTENSITY_BASE = np.array([1400.0, 2600.0, 1800.0, 600.0, 2800.0, 350.0, 1500.0, 900.0])
-_INTENSITY_SPREAD = np.array([0.25, 0.2, 0.2, 0.25, 0.2, 0.35, 0.8, 0.5])
+_INTENSITY_BASE = np.array([1400.0, 2600.0, 1800.0, 600.0, 2800.0, 350.0, 1500.0, 900.0, 1400.0])
+_INTENSITY_SPREAD = np.array([0.25, 0.2, 0.2, 0.25, 0.2, 0.35, 0.8, 0.5, 0.25])
 
 
 def _intensity(comp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -1077,6 +1080,7 @@ class TunnelTruth:
     centerline : Centerline of the design axis (section centre), chainage 0 at its start.
     outline : the design section :class:`Outline` (``signed_distance(lateral, vertical)``).
     chainage_range : (start, end) of the scanned stretch on the design axis, m.
+    chamber : bool, True on the side chamber's rock surfaces (label 0, outside the outline).
     """
 
     label: np.ndarray
@@ -1086,6 +1090,7 @@ class TunnelTruth:
     centerline: Centerline
     outline: Outline
     chainage_range: tuple[float, float]
+    chamber: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -1104,6 +1109,7 @@ class PairTruth:
     deformations : the applied deformations.
     ref_range, cmp_range : scanned stretches on the reference design axis, m.
     yaw_deg, tilt_deg, tilt_axis : the rigid motion's rotation (tilt axis horizontal, (3,)).
+    chamber, ref_chamber : bool, True on the side chamber's rock surfaces (label 0).
     """
 
     transform: np.ndarray
@@ -1123,6 +1129,8 @@ class PairTruth:
     yaw_deg: float
     tilt_deg: float
     tilt_axis: np.ndarray
+    chamber: np.ndarray | None = None
+    ref_chamber: np.ndarray | None = None
 
     @property
     def cmp_centerline(self) -> Centerline:
@@ -1195,6 +1203,7 @@ def make_tunnel(
         scene.axis.centerline(0.0, tunnel.length),
         scene.outline,
         (0.0, float(tunnel.length)),
+        ep["chamber"],
     )
     log.debug("synthetic epoch: %d points", len(cloud))
     return cloud, truth
@@ -1297,6 +1306,8 @@ def make_pair(spec: PairSpec | None = None, **changes) -> SynthPair:
         cmp_range=cmp_range,
         yaw_deg=float(yaw),
         tilt_deg=float(spec.tilt_deg),
+        chamber=cmp["chamber"],
+        ref_chamber=ref["chamber"],
         tilt_axis=tilt_axis,
     )
     log.debug("synthetic pair: %d reference, %d compared points", len(ref_cloud), len(cmp_cloud))
@@ -1342,6 +1353,8 @@ def write_pair(pair: SynthPair, out_dir: str | Path, *, fmt: str = "ply") -> dic
         ref_label=t.ref_label,
         ref_chainage=t.ref_chainage,
         ref_surface=t.ref_surface,
+        chamber=t.chamber,
+        ref_chamber=t.ref_chamber,
         centerline_points=t.centerline.points,
         centerline_chainage=t.centerline.chainage,
         ref_range=np.array(t.ref_range),
