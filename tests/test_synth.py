@@ -391,3 +391,16 @@ def test_cmp_centerline_in_cmp_frame():
     assert line.length == pytest.approx(15.0, abs=1e-9)
     pr = line.project(pair.cmp.xyz)
     np.testing.assert_allclose(pr.chainage + 2.0, pair.truth.chainage, atol=3e-3)
+
+
+def test_progress_is_reported():
+    seen: list[tuple[str, float]] = []
+    make_pair(
+        tunnel=TunnelSpec(length=5.0, density=20.0), progress=lambda s, f: seen.append((s, f))
+    )
+    fractions = [f for _, f in seen]
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0
+    assert fractions == sorted(fractions)
+    seen.clear()
+    make_tunnel(TunnelSpec(length=5.0, density=20.0), progress=lambda s, f: seen.append((s, f)))
+    assert [f for _, f in seen] == [0.0, 1.0]

@@ -43,6 +43,7 @@ import numpy as np
 from .centerline.curve import Centerline
 from .cloud import Cloud
 from .errors import ConfigError
+from .progress import ProgressCallback, report, timed_stage
 
 __all__ = [
     "SectionSpec",
@@ -1165,6 +1166,7 @@ def make_tunnel(
     *,
     seed: int = 0,
     deformations: tuple[DeformationSpec, ...] = (),
+    progress: ProgressCallback | None = None,
 ) -> tuple[Cloud, TunnelTruth]:
     """One synthetic epoch in the design frame (z up, axis starting at the origin along +x).
 
@@ -1176,6 +1178,8 @@ def make_tunnel(
         Random seed; the same seed gives the same cloud as the reference of :func:`make_pair`.
     deformations : tuple of DeformationSpec
         Deformations applied to this epoch (none by default).
+    progress : ProgressCallback, optional
+        Called with ``("synthetic epoch", fraction)``.
 
     Returns
     -------
@@ -1189,7 +1193,10 @@ def make_tunnel(
     g_scene, g_ref, _, _, _ = _streams(seed)
     scene = _make_scene(tunnel, g_scene)
     heaps = _draw_heaps(g_scene, 0.0, tunnel.length) if tunnel.conveyor else None
-    ep = _sample_epoch(scene, 0.0, tunnel.length, g_ref, deformations, heaps)
+    report(progress, "synthetic epoch", 0.0)
+    with timed_stage(log, "synthetic epoch"):
+        ep = _sample_epoch(scene, 0.0, tunnel.length, g_ref, deformations, heaps)
+    report(progress, "synthetic epoch", 1.0)
     cloud = Cloud(
         ep["xyz"],
         {"intensity": ep["intensity"]},
@@ -1222,7 +1229,9 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
 
 
-def make_pair(spec: PairSpec | None = None, **changes) -> SynthPair:
+def make_pair(
+    spec: PairSpec | None = None, *, progress: ProgressCallback | None = None, **changes
+) -> SynthPair:
     """Two epochs of a synthetic tunnel with exact ground truth.
 
     Parameters
@@ -1230,6 +1239,8 @@ def make_pair(spec: PairSpec | None = None, **changes) -> SynthPair:
     spec : PairSpec, optional
         The pair; keyword arguments (any :class:`PairSpec` field, e.g. ``seed=1,
         tunnel=TunnelSpec(...)``) build or override it.
+    progress : ProgressCallback, optional
+        Called with ``("synthetic pair", fraction)``.
 
     Returns
     -------
@@ -1258,8 +1269,13 @@ def make_pair(spec: PairSpec | None = None, **changes) -> SynthPair:
     if tunnel.conveyor:
         heaps_ref = _draw_heaps(g_scene, *ref_range)
         heaps_cmp = _draw_heaps(g_coal, *cmp_range) if spec.coal_change else heaps_ref
-    ref = _sample_epoch(scene, *ref_range, g_ref, (), heaps_ref)
-    cmp = _sample_epoch(scene, *cmp_range, g_cmp, spec.deformations, heaps_cmp)
+    report(progress, "synthetic pair", 0.0)
+    with timed_stage(log, "synthetic reference epoch"):
+        ref = _sample_epoch(scene, *ref_range, g_ref, (), heaps_ref)
+    report(progress, "synthetic pair", 0.5)
+    with timed_stage(log, "synthetic compared epoch"):
+        cmp = _sample_epoch(scene, *cmp_range, g_cmp, spec.deformations, heaps_cmp)
+    report(progress, "synthetic pair", 0.95)
 
     yaw = g_motion.uniform(0.0, 360.0) if spec.yaw_deg is None else float(spec.yaw_deg)
     phi = g_motion.uniform(0.0, 2 * np.pi)
@@ -1311,6 +1327,7 @@ def make_pair(spec: PairSpec | None = None, **changes) -> SynthPair:
         tilt_axis=tilt_axis,
     )
     log.debug("synthetic pair: %d reference, %d compared points", len(ref_cloud), len(cmp_cloud))
+    report(progress, "synthetic pair", 1.0)
     return SynthPair(ref_cloud, cmp_cloud, truth, spec)
 
 
