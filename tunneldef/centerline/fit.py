@@ -12,8 +12,8 @@ centres (The NURBS Book, 2nd ed., §9.4.1):
   data: where slices are missing (a chamber, a blind cone under a scanner) the span simply
   stretches across the gap instead of letting the curve wiggle in it;
 * weights: each centre has a data weight, its "adhesion" in the paper's words, computed by
-  iteratively reweighted least squares (Huber), so a bad centre that passed the per-slice
-  checks cannot pull the curve; the control-point weights of the rational curve are 1 (a
+  iteratively reweighted least squares (Huber, then Tukey), so a bad centre that passed the
+  per-slice checks cannot pull the curve; the control-point weights of the rational curve are 1 (a
   centreline has no conic sections that would need other weights) and are kept in the meta
   data with the knots and control points;
 * the ends are free (not clamped to the first and last noisy centres).
@@ -103,8 +103,9 @@ def fit_nurbs(
     weights : ndarray, shape (K,), optional
         Prior data weight of each centre (default 1).
     robust : bool
-        Reweight the centres by their residuals (Huber, threshold 2.5 robust sigmas, sigma at
-        least 5 mm) for ``iterations`` rounds.
+        Reweight the centres by their residuals for ``iterations`` rounds: two Huber rounds
+        (threshold 2.5 robust sigmas, sigma at least 5 mm), then Tukey's biweight (4.685
+        sigmas), which ignores gross outliers.
 
     Raises
     ------
@@ -127,15 +128,19 @@ def fit_nurbs(
     a = _design_matrix(degree, knots, n_ctrl, t)
     prior = np.ones(k) if weights is None else np.asarray(weights, dtype=np.float64)
     w = prior.copy()
-    for _ in range(iterations if robust else 1):
+    for it in range(iterations if robust else 1):
         sw = np.sqrt(w)[:, None]
         ctrl, *_ = np.linalg.lstsq(a * sw, q * sw, rcond=None)
         res = np.linalg.norm(a @ ctrl - q, axis=1)
         if not robust:
             break
         sigma = max(1.4826 * float(np.median(res)), 0.005)
-        c = 2.5 * sigma
-        w = prior * np.where(res <= c, 1.0, c / np.maximum(res, 1e-12))
+        if it < 2:  # Huber first (convex, finds the bulk) ...
+            c = 2.5 * sigma
+            w = prior * np.where(res <= c, 1.0, c / np.maximum(res, 1e-12))
+        else:  # ... then Tukey's biweight, which gives gross outliers no weight at all
+            c = 4.685 * sigma
+            w = prior * np.where(res < c, (1.0 - (res / c) ** 2) ** 2, 0.0)
     curve = NURBS.Curve()
     curve.degree = degree
     curve.ctrlpts = ctrl.tolist()

@@ -17,8 +17,9 @@ Steps (paper §3.1.3, with the guards a cluttered mine needs):
    of the points near it (narrow kernel density), since Canny marks the *edge* of the wall's
    density ridge, a few centimetres outside the wall.
 
-If no Hough line qualifies, a 1-D density of the lateral offsets gives the first and last
-significant peaks instead (method ``"fallback"``).
+If no Hough line qualifies at all (an image too sparse for edges), a 1-D density of the lateral
+offsets gives the first and last significant peaks instead (method ``"fallback"``); if the lines
+all belong to one wall, the other wall is missing and the slice is rejected.
 """
 
 from __future__ import annotations
@@ -247,7 +248,9 @@ def wall_lines(
         (left, ls), (right, rs) = out
         if left - right >= min_width:
             return WallLines(left, right, ls, rs, HOUGH, "", image, edges, extent, lines)
-    fb = _fallback(v, bandwidth=kernel_half_width, min_share=0.05)
+    # Hough lines on one side only: that wall is missing (a hole, a chamber mouth); the density
+    # fallback is for slices whose image gave no line at all (too sparse for edges)
+    fb = None if len(lines) else _fallback(v, bandwidth=kernel_half_width, min_share=0.05)
     if fb is not None and fb[0] - fb[1] >= min_width:
         left = refine_peak(v, fb[0], window=window, bandwidth=refine_bandwidth)
         right = refine_peak(v, fb[1], window=window, bandwidth=refine_bandwidth)
