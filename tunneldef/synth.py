@@ -83,6 +83,8 @@ _C_SHELL, _C_PIPE, _C_CABLE, _C_BELT, _C_FRAME, _C_COAL, _C_OUTLIER, _C_PERSON, 
     9
 )
 _SHADOW_SEEN = 0.2  # share of shadowed shell a handheld scanner still records
+_SHELL_CHUNK = 4_000_000  # shell candidates drawn at once
+_SHADOW_STEP = 0.0005  # m around the outline: resolution of the shadow look-up table
 
 
 # --------------------------------------------------------------------------------------------
@@ -753,32 +755,54 @@ class _Epoch:
     # -- components -------------------------------------------------------------------------
 
     def shell(self, deformations: tuple[DeformationSpec, ...]) -> None:
+        """The design outline swept along the axis, with holes, shadows, relief, deformations.
+
+        Drawn in consecutive stretches of at most ``_SHELL_CHUNK`` candidates (bounded memory);
+        the counts per stretch are multinomial, so the union is one uniform sample.
+        """
         sc, rng = self.scene, self.rng
         out = sc.outline
         umax = float(np.max(np.abs(out.evaluate(np.linspace(0, out.perimeter, 64))[0])))
         n = self.n_candidates((self.s1 - self.s0) * out.perimeter, umax)
-        s = self.chainages(n)
+        holes = np.stack(
+            [
+                rng.uniform(self.s0, self.s1, sc.tunnel.holes),
+                rng.uniform(0, out.perimeter, sc.tunnel.holes),
+                rng.uniform(0.3, 1.0, sc.tunnel.holes),
+            ],
+            axis=1,
+        )
+        table = None
+        if sc.pipes or sc.conveyor is not None:
+            # the shadow depends on the position around the outline only: a look-up table
+            grid = (np.arange(int(np.ceil(out.perimeter / _SHADOW_STEP))) + 0.5) * _SHADOW_STEP
+            gu, gv, *_ = out.evaluate(grid)
+            table = self.shadow(gu, gv)
+        k = max(1, -(-n // _SHELL_CHUNK))
+        edges = np.linspace(self.s0, self.s1, k + 1)
+        for c, nc in enumerate(rng.multinomial(n, np.full(k, 1.0 / k))):
+            self._shell_stretch(edges[c], edges[c + 1], int(nc), umax, holes, table, deformations)
+
+    def _shell_stretch(self, s0, s1, n, umax, holes, table, deformations) -> None:
+        sc, rng, out = self.scene, self.rng, self.scene.outline
+        s = self.chainages(n, s0, s1)
         p = rng.uniform(0.0, out.perimeter, n)
         u, v, nu, nv, surface = out.evaluate(p)
         m = self.keep(s, u, umax)
-        for _ in range(self.scene.tunnel.holes):
-            cs, cp = rng.uniform(self.s0, self.s1), rng.uniform(0, out.perimeter)
-            r = rng.uniform(0.3, 1.0)
+        half = out.perimeter / 2
+        for cs, cp, r in holes:
             i, j = np.searchsorted(s, (cs - r, cs + r))
-            dp = np.mod(p[i:j] - cp + out.perimeter / 2, out.perimeter) - out.perimeter / 2
+            dp = np.mod(p[i:j] - cp + half, out.perimeter) - half
             m[i:j] &= (s[i:j] - cs) ** 2 + dp**2 > r * r
         ch = sc.chamber
         if ch is not None:
             wall = SURFACE_LEFT if ch["sign"] > 0 else SURFACE_RIGHT
-            m &= ~((surface == wall) & (s > ch["s0"]) & (s < ch["s1"]))
-        if sc.pipes or sc.conveyor is not None:  # a moving handheld scanner sees some of it
-            # the shadow depends on the position around the outline only: a look-up table
-            step = 0.0005
-            grid = (np.arange(int(np.ceil(out.perimeter / step))) + 0.5) * step
-            gu, gv, *_ = out.evaluate(grid)
-            table = self.shadow(gu, gv)
-            cell = np.minimum((p / step).astype(np.intp), table.shape[0] - 1)
+            i, j = np.searchsorted(s, (ch["s0"], ch["s1"]))
+            m[i:j] &= surface[i:j] != wall
+        if table is not None:  # a moving handheld scanner still sees some of the shadow
+            cell = np.minimum((p / _SHADOW_STEP).astype(np.intp), table.shape[0] - 1)
             m &= ~table[cell] | (rng.random(n) < _SHADOW_SEEN)
+            del cell
         s, p, u, v, nu, nv, surface = (a[m] for a in (s, p, u, v, nu, nv, surface))
         if sc.relief is not None:  # static rock relief, outward positive
             off = _relief(sc.relief, s, p)
@@ -789,7 +813,7 @@ class _Epoch:
         for d in deformations:
             pc = _patch_centre(out, d)
             i, j = np.searchsorted(s, (d.chainage - d.length / 2, d.chainage + d.length / 2))
-            dp = np.mod(p[i:j] - pc + out.perimeter / 2, out.perimeter) - out.perimeter / 2
+            dp = np.mod(p[i:j] - pc + half, out.perimeter) - half
             shift = d.amplitude * d.taper(s[i:j] - d.chainage, dp)
             u[i:j] += shift * nu[i:j]
             v[i:j] += shift * nv[i:j]
@@ -985,11 +1009,14 @@ class _Epoch:
     def finish(self, *, chunk: int = 2_000_000) -> dict[str, np.ndarray]:
         """Concatenate, sort along the walk (chainage), add noise, map to the design frame."""
         parts = self.parts
-        s = np.concatenate([p["s"] for p in parts])
+        s = np.concatenate([p.pop("s") for p in parts])
         order = np.argsort(s, kind="stable")
         s = s[order]
-        cat = {k: np.concatenate([p[k] for p in parts])[order] for k in parts[0] if k != "s"}
         self.parts = []
+        cat = {}
+        for k in [k for k in parts[0] if k != "s"]:  # key by key, freeing the parts as we go
+            cat[k] = np.concatenate([p.pop(k) for p in parts])[order]
+        del order, parts
         n = s.shape[0]
         sigma = self.scene.tunnel.noise_sigma
         xyz = np.empty((n, 3))
