@@ -26,8 +26,8 @@ Notes
 - Truth chainage is that of the noisy point: exact on a straight axis, first-order on a curve.
 - Truth displacement is the movement of the shell along the design outline's normal; it is 0
   for equipment, coal, people and outliers (select the shell with ``label == 0``).
-- Everything is vectorised: about 1 s per million points on one core; 16 M points per epoch
-  need about 3.5 GB for a pair.
+- Everything is vectorised: about 1 s per million points on one core; a pair of two
+  16-19 M point epochs peaks below 3 GB of memory.
 """
 
 from __future__ import annotations
