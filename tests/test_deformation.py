@@ -17,7 +17,7 @@ from tunneldef.deformation.knn import (
     morton_order,
 )
 from tunneldef.errors import ConfigError, InvalidCloudError
-from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
+from tunneldef.synth import DeformationSpec, PairSpec, SectionSpec, TunnelSpec, make_pair
 
 AMP = 0.03
 SAG, BULGE, HEAVE, OUTWARD = 6.0, 11.0, 15.0, 6.0  # chainages of the synthetic deformations
@@ -333,3 +333,29 @@ def test_with_extracted_centerline(pair):
     s_truth = t.chainage[i]
     assert s_truth == pytest.approx(SAG, abs=0.5)
     assert roof[0]["peak"] == pytest.approx(-AMP, abs=0.005)
+
+
+@pytest.mark.parametrize(("kind", "radius"), [("arch", 40.0), ("trapezoid", None)])
+def test_other_sections_and_a_curve(kind, radius):
+    """Arch and trapezoid sections, a 40 m curve with a 3 % grade: the same peaks."""
+    pair = make_pair(
+        PairSpec(
+            tunnel=TunnelSpec(
+                length=20.0, radius=radius, grade=0.03, section=SectionSpec(kind=kind)
+            ),
+            deformations=(
+                DeformationSpec(kind="roof_sag", chainage=8.0, amplitude=AMP),
+                DeformationSpec(kind="wall_bulge", chainage=14.0, amplitude=AMP, side="right"),
+            ),
+            cmp_shift=1.0,
+            cmp_length=18.0,
+            seed=3,
+        )
+    )
+    t = pair.truth
+    d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, shell=t.label == 0)
+    _, zones = danger_zones(d, threshold=0.02)
+    assert [z["surface"] for z in zones] == ["roof", "right_wall"]
+    for z, s in zip(zones, (8.0, 14.0), strict=True):
+        assert z["peak"] == pytest.approx(-AMP, abs=0.007)
+        assert z["peak_chainage"] == pytest.approx(s, abs=0.5)
