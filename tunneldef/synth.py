@@ -79,9 +79,8 @@ _DEFORMATION_KINDS = ("roof_sag", "wall_bulge", "floor_heave")
 _SIDES = ("left", "right")
 
 # component codes (internal; they set the intensity model)
-_C_SHELL, _C_PIPE, _C_CABLE, _C_BELT, _C_FRAME, _C_COAL, _C_OUTLIER, _C_PERSON, _C_CHAMBER = range(
-    9
-)
+_C_SHELL, _C_PIPE, _C_CABLE, _C_BELT, _C_FRAME, _C_COAL = range(6)
+_C_OUTLIER, _C_PERSON, _C_CHAMBER = range(6, 9)
 _SHADOW_SEEN = 0.2  # share of shadowed shell a handheld scanner still records
 _SHELL_CHUNK = 4_000_000  # shell candidates drawn at once
 _SHADOW_STEP = 0.0005  # m around the outline: resolution of the shadow look-up table
@@ -92,9 +91,13 @@ _SHADOW_STEP = 0.0005  # m around the outline: resolution of the shadow look-up 
 # --------------------------------------------------------------------------------------------
 
 
-def _positive(name: str, value: float) -> None:
-    if not np.isfinite(value) or value <= 0:
-        raise ConfigError(f"{name} must be a positive number of metres, got {value!r}")
+def _positive(name: str, value: float, unit: str = "m") -> None:
+    try:
+        ok = bool(np.isfinite(value) and value > 0)
+    except TypeError:
+        ok = False
+    if not ok:
+        raise ConfigError(f"{name} must be a positive number ({unit}), got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -223,7 +226,7 @@ class TunnelSpec:
         if not isinstance(self.section, SectionSpec):
             raise ConfigError("section must be a SectionSpec")
         _positive("tunnel length", self.length)
-        _positive("density", self.density)
+        _positive("density", self.density, "points per m^2")
         if self.radius is not None:
             if not np.isfinite(self.radius) or abs(self.radius) < 2 * self.section.width:
                 raise ConfigError(
