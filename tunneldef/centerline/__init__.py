@@ -400,6 +400,10 @@ def extract_centerline(
         logger.info("centreline pass %d: curve moved by up to %.4f m", passes, shift)
         if shift < c.converge_tol:
             break
+        if len(shifts) > 1 and shift > 0.7 * shifts[-2]:
+            # no longer converging: the centres' own noise (rough walls) moves the curve
+            logger.info("centreline: re-slicing stopped at the noise floor (%.3f m)", shift)
+            break
     ok = [r for r in records if r.ok]
     if ok:
         s = centerline.project(np.array([r.centre for r in ok])).chainage
