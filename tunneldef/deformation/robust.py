@@ -7,25 +7,37 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
 
 1. *Core points*: the compared cloud is cut into cubic voxels of ``core_spacing``; each voxel's
    centroid is a core point, and every compared point takes the value of its voxel's core.
-2. *Normal*: the reference points within ``normal_radius`` of a core are fitted by a plane
-   (PCA, smallest eigenvector); the normal is oriented outward, away from the centreline.
+2. *Normal*: the reference points around a core (voxel moments of the reference within
+   ``normal_radius``) are fitted by a plane (PCA, smallest eigenvector); the normal is oriented
+   outward, away from the centreline.
 3. *Cylinder means*: reference and compared points inside a cylinder of radius
-   ``cylinder_radius`` along that normal, within ``max_depth`` of the core, are projected on the
-   normal; the deformation is the mean projection of the compared points minus that of the
-   reference points (both sigma-clipped, so outliers and stray objects are dropped). Negative
-   means the surface moved into the tunnel (the paper's sign convention).
+   ``cylinder_radius`` along that normal are projected on the normal. Only points of the same
+   surface count (their nearest core's normal within 35 degrees of this one). Each epoch's
+   location is a robust mean: values beyond 3 robust sigma of the median are dropped, then the
+   innermost 20 % (objects near the rock - cables, pipe backs, the other wall near a corner -
+   all lie inward of it), then values beyond 3 sigma of the mean. The deformation is the
+   compared location minus the reference location: negative means the surface moved into the
+   tunnel (the paper's sign convention).
 4. *Level of detection*: ``lod95 = 1.96 (sqrt(s_r^2 / n_r + s_c^2 / n_c) + registration_sigma)``
    from the spread ``s`` and count ``n`` of each epoch's cylinder; ``significant = |d| > lod95``.
 
-Cores whose cylinder holds fewer than ``min_points`` points of either epoch are measured again
-with a cylinder twice as wide; a core gets NaN only when no reference point lies in that wider
-cylinder within ``max_depth`` (the surface moved further than ``max_depth``, or the reference
-epoch did not see it). Where fewer than three reference points lie within ``normal_radius``, the
-normal falls back to the radial direction from the centreline.
+Depth: the core lies on the compared surface, so compared points are taken within
+``min(max_depth, cylinder_radius)`` of it along the normal; reference points first within the
+same depth, and within ``max_depth`` where the reference surface was not found there.
+Adaptive scale: a core whose cylinder holds fewer than ``min_points`` points of either epoch,
+or is more than 1.5 times rougher than the median cylinder (shadowed rock behind pipes,
+objects close to the rock), is measured again with a cylinder twice as wide. A core gets NaN
+only when no reference point of its surface lies in that wider cylinder within ``max_depth``
+(the surface moved further than ``max_depth``, or the reference epoch did not see it). Where
+fewer than three reference points lie within ``normal_radius``, the normal falls back to the
+radial direction from the centreline. Corners: points whose core straddles two surfaces
+(surface variation above 0.02) take the value of the nearest planar core whose plane passes
+closest to them.
 
 Everything is vectorised: neighbourhoods come from ``cKDTree.query_ball_point`` (unsorted,
-multi-threaded), are flattened into one index array per chunk of cores, and every per-core
-statistic is a ``np.bincount`` over that flat array.
+multi-threaded) on spatially sorted copies of the clouds, are flattened into one index array
+per chunk of cores, and every per-core statistic is a ``np.bincount`` over that flat array (or
+one sort of it, for the medians and quartiles).
 
 References
 ----------
@@ -55,6 +67,8 @@ logger = logging.getLogger(__name__)
 
 _Z95 = 1.959964
 _CHUNK = 40_000  # cores per neighbourhood query (bounds the flat neighbour arrays)
+_ROUGH_FACTOR = 1.5  # a cylinder this much rougher than the median one is measured wider
+_INNER_TRIM = 0.2  # innermost fraction of each cylinder dropped (objects lie inward)
 _MAX_VARIATION = 0.02  # a plane with 2 cm noise at a 0.3 m radius: ~0.005; a corner: > 0.05
 _K_ASSIGN = 16  # candidate planar cores for a point of a corner core
 _MAX_ANGLE_DEG = 35.0  # points of the same surface as a core: normals within this angle
@@ -228,16 +242,18 @@ def _clipped_stats(
     *,
     k: float = 3.0,
     floor: float = 0.005,
+    trim: float = _INNER_TRIM,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robustly clipped mean, standard deviation and count of ``values`` per group.
+    """Robust location, spread and count of ``values`` (positions along the outward normal)
+    per group.
 
     ``group`` must be sorted (non-decreasing). Values farther than ``max(k * s, floor)`` from
-    their group's median are dropped, ``s`` being (75th percentile - median) / 0.6745: the outer
-    half of a shell's cylinder is clean (rock behind it), while other surfaces (the roof in a
-    wall's cylinder near a corner, pipes, cables) lie inward and would inflate a symmetric
-    spread. A second pass drops values farther than ``k`` standard deviations from the mean of
-    the first survivors.
-    Groups without values get NaN mean / std and count 0.
+    their group's median are dropped (``s`` = interquartile range / 1.349), then the lowest
+    ``trim`` fraction of each group (the innermost points: cables, pipe backs, the other
+    surface near a corner all lie inward of the shell; the rock behind it is clean), and a
+    last pass drops values farther than ``k`` standard deviations from the survivors' mean.
+    The location is the mean of the survivors, the spread is ``s`` (for the level of
+    detection) and the count is the number of survivors. Groups without values get NaN and 0.
     """
     cnt = np.bincount(group, minlength=ngroups)
     if values.size:
@@ -259,20 +275,32 @@ def _clipped_stats(
     med = quantile(0.5)
     spread = (quantile(0.75) - quantile(0.25)) / 1.349
     keep = np.abs(values - med[group]) <= np.maximum(k * spread[group], floor)
-    mean = std = n = None
-    for it in range(2):
-        w = keep.astype(np.float64)
-        n = np.bincount(group, weights=w, minlength=ngroups)
-        mean = np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0)
-        dev = values - mean[group]
-        s2 = np.bincount(group, weights=w * dev * dev, minlength=ngroups)
-        std = np.sqrt(s2 / np.maximum(n - 1.0, 1.0))
-        if it == 0:
-            keep &= np.abs(dev) <= np.maximum(k * std[group], floor)
+    w = keep.astype(np.float64)
+    n = np.bincount(group, weights=w, minlength=ngroups)
+    dev = (
+        values
+        - (np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0))[group]
+    )
+    spread = np.sqrt(
+        np.bincount(group, weights=w * dev * dev, minlength=ngroups) / np.maximum(n - 1.0, 1.0)
+    )
+    if trim > 0:
+        keep &= values >= quantile(trim)[group]
+    w = keep.astype(np.float64)
+    n = np.bincount(group, weights=w, minlength=ngroups)
+    mean = np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0)
+    dev = values - mean[group]
+    std = np.sqrt(
+        np.bincount(group, weights=w * dev * dev, minlength=ngroups) / np.maximum(n - 1.0, 1.0)
+    )
+    keep &= np.abs(dev) <= np.maximum(k * std[group], floor)
+    w = keep.astype(np.float64)
+    n = np.bincount(group, weights=w, minlength=ngroups)
+    mean = np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0)
     empty = n < 1
     mean[empty] = np.nan
-    std[empty] = np.nan
-    return mean, std, n.astype(np.int32)
+    spread[empty] = np.nan
+    return mean, spread, n.astype(np.int32)
 
 
 def _outward(centerline: Centerline, xyz: np.ndarray, workers: int) -> np.ndarray:
@@ -302,7 +330,7 @@ def robust_deformation(
     cylinder_radius: float = 0.2,
     max_depth: float = 0.3,
     core_spacing: float = 0.2,
-    min_points: int = 5,
+    min_points: int = 20,
     registration_sigma: float = 0.0,
     ref_mask: np.ndarray | None = None,
     cmp_mask: np.ndarray | None = None,
@@ -409,6 +437,7 @@ def robust_deformation(
     short = min(max_depth, cylinder_radius)
     out = {k: np.zeros(n_cores) for k in ("mr", "sr", "nr", "mc", "sc", "nc")}
     n_fallback = n_deep = 0
+    wide_done = np.zeros(n_cores, dtype=bool)
     for start in range(0, n_cores, _CHUNK):
         sl = slice(start, min(start + _CHUNK, n_cores))
         c, nrm = cores[sl], normal[sl]
@@ -428,6 +457,7 @@ def robust_deformation(
                 for s_, w in zip(stats[:3], ref_deep, strict=True):
                     s_[deep] = w
         weak = (stats[2] < min_points) | (stats[5] < min_points)
+        wide_done[sl] = weak
         if weak.any():
             n_fallback += int(weak.sum())
             cw, nw, rw = c[weak], nrm[weak], 2.0 * cylinder_radius
@@ -439,7 +469,27 @@ def robust_deformation(
                 s_[weak] = w
         for key, s_ in zip(out, stats, strict=True):
             out[key][sl] = s_
-        report(progress, "robust deformation", 0.3 + 0.7 * sl.stop / n_cores)
+        report(progress, "robust deformation", 0.2 + 0.7 * sl.stop / n_cores)
+
+    # pass 3: cores whose cylinders are much rougher than is typical (objects close to the
+    # shell, shadowed shell) are measured again with a cylinder twice as wide
+    rough = np.zeros(n_cores, dtype=bool)
+    for key in ("sr", "sc"):
+        typical = np.nanmedian(out[key]) if np.isfinite(out[key]).any() else np.inf
+        with np.errstate(invalid="ignore"):
+            rough |= out[key] > _ROUGH_FACTOR * typical
+    rough_ids = np.flatnonzero(rough & ~wide_done)
+    for start in range(0, len(rough_ids), _CHUNK):
+        ids = rough_ids[start : start + _CHUNK]
+        c, nrm, rw = cores[ids], normal[ids], 2.0 * cylinder_radius
+        wide = [
+            *_epoch_stats(*ref_epoch, c, nrm, rw, max_depth, workers),
+            *_epoch_stats(*cmp_epoch, c, nrm, rw, short, workers),
+        ]
+        for key, w in zip(out, wide, strict=True):
+            out[key][ids] = w
+    n_fallback += len(rough_ids)
+    report(progress, "robust deformation", 0.95)
 
     d_mean = out["mc"] - out["mr"]
     n_r, n_c = out["nr"], out["nc"]

@@ -4,8 +4,8 @@ Attached equipment (pipes, cables), the conveyor and its load, people and stray 
 *inside* the tunnel: seen from the centreline, the shell is the outermost surface in every
 direction. :func:`classify_shell` cuts the cloud into chainage windows and angular sectors
 around the centreline, takes an outer anchor in each (window, sector) bin, joins the anchors
-of a window into a closed outer envelope (piecewise linear in angle), and keeps as shell the
-points within a tolerance of that envelope.
+on each window's convex hull into a closed outer envelope, refines it on the points near it,
+and keeps as shell the points within a tolerance of that envelope.
 
 Everything is vectorised over all bins at once (one sort of all points by (bin, radius), one
 ``np.interp`` over the concatenated envelopes of all windows); there is no loop over points
@@ -27,6 +27,7 @@ __all__ = ["classify_shell", "outer_envelope"]
 
 logger = logging.getLogger(__name__)
 
+_ANCHOR_QUANTILE = 0.75  # of the radii near the outer envelope, in each bin
 _WINDOW_PERIOD = 20.0  # > 6 pi: angle axis offset per window in the concatenated envelopes
 
 
@@ -154,17 +155,27 @@ def outer_envelope(
     return _ring(wid, theta, a_win, a_theta, a_rho)
 
 
-def _mean_envelope(
-    window: np.ndarray, theta: np.ndarray, rho: np.ndarray, keep: np.ndarray, *, sectors: int
+def _upper_envelope(
+    window: np.ndarray,
+    theta: np.ndarray,
+    rho: np.ndarray,
+    keep: np.ndarray,
+    *,
+    sectors: int,
+    quantile: float = _ANCHOR_QUANTILE,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Envelope through the mean (angle, radius) of the ``keep`` points of each bin."""
+    """Envelope through the mean angle and the ``quantile`` of the radius of the ``keep``
+    points of each bin (an upper quantile: objects near the shell pull a mean inward)."""
     wid, bin_ = _bins(window, theta, sectors)
-    b, inv = np.unique(bin_[keep], return_inverse=True)
-    inv = inv.ravel()
-    cnt = np.bincount(inv).astype(np.float64)
-    m_theta = np.bincount(inv, weights=theta[keep]) / cnt
-    m_rho = np.bincount(inv, weights=rho[keep]) / cnt
-    return _ring(wid, theta, b // sectors, m_theta, m_rho)
+    kb, kt, kr = bin_[keep], theta[keep], rho[keep]
+    order = np.lexsort((kr, kb))
+    kb, kt, kr = kb[order], kt[order], kr[order]
+    starts = np.flatnonzero(np.r_[True, kb[1:] != kb[:-1]])
+    cnt = np.diff(np.r_[starts, len(kb)])
+    inv = np.repeat(np.arange(len(starts)), cnt)
+    m_theta = np.bincount(inv, weights=kt) / cnt
+    q_rho = kr[starts + np.floor(quantile * (cnt - 1)).astype(np.intp)]
+    return _ring(wid, theta, kb[starts] // sectors, m_theta, q_rho)
 
 
 def classify_shell(
@@ -173,7 +184,7 @@ def classify_shell(
     *,
     window: float = 1.0,
     sectors: int = 360,
-    inner_tolerance: float = 0.045,
+    inner_tolerance: float = 0.055,
     outer_tolerance: float = 0.1,
     search_tolerance: float = 0.12,
     max_obliquity: float = 4.0,
@@ -193,12 +204,16 @@ def classify_shell(
         Angular sectors per turn around the centreline (360: 1 degree, about 5 cm of a 3 m
         radius section).
     inner_tolerance : float
-        Points more than this far inside the outer envelope (along the shell normal, metres)
-        are not shell: 0.1 m is about 6 sigma of the scanner's +-3 cm noise (paper §4, Table 1)
-        plus the anchor's own offset, while pipes, conveyors, coal and people stand further
-        off the rock.
+        Points more than this far inside the shell's envelope (along the shell normal, metres)
+        are not shell. The envelope sits at the upper quartile of the shell's noise band, so
+        0.055 m keeps the shell down to about 3 sigma of the scanner's +-3 cm (2 sigma) noise
+        (paper §4, Table 1); pipes, the conveyor, coal and people stand further off the rock.
+        Objects closer to the rock than the noise (cables) cannot be told from it.
     outer_tolerance : float
         Points more than this far beyond the envelope are not shell (stray returns), metres.
+    search_tolerance : float
+        Points within this distance inside the outer hull are the candidates from which the
+        shell's envelope is estimated, metres.
     max_obliquity : float
         Cap on the radial stretch of the tolerances where the shell is seen at a grazing angle
         from the centreline (roof corners of a wide rectangular section).
@@ -220,14 +235,20 @@ def classify_shell(
     Notes
     -----
     (1) Project the points on the centreline: chainage ``s``, angle ``theta`` and radius
-    ``rho`` in the normal plane. (2) In each (window, sector) bin take the third-largest radius
-    and its angle as an anchor. (3) Join the anchors of a window into a closed, piecewise-linear
-    envelope ``rho_env(theta)`` and evaluate it at each point's own angle (so the envelope
-    follows the section shape inside a sector, e.g. a flat roof seen obliquely). (4) A point is
-    shell when ``-inner_tolerance * f <= rho - rho_env <= outer_tolerance * f``, ``f`` being
-    the envelope's obliquity (capped at ``max_obliquity``). Shell that is completely hidden
-    behind equipment within one bin cannot be seen and the equipment in front of it is then
-    taken as the outermost surface.
+    ``rho`` in the normal plane. (2) In each (window, sector) bin take the second-largest radius
+    and its angle as an anchor; keep the anchors on the convex hull of each window (tunnel
+    sections are convex: a conveyor or a pipe that hides the rock over several sectors dents
+    the anchors inward and drops off the hull). (3) Candidates are the points within
+    ``search_tolerance`` inside that hull; the shell's envelope joins, bin by bin, their mean
+    angle and the upper quartile of their radii. Envelopes are closed polygons evaluated along
+    each point's own ray, so they follow the section inside a sector (a flat roof seen
+    obliquely). (4) A point is shell when ``-inner_tolerance * f <= rho - rho_env <=
+    outer_tolerance * f``, ``f`` being the obliquity of the envelope to the ray (capped at
+    ``max_obliquity``).
+
+    Limits: a dent of the shell deeper than ``search_tolerance`` relative to the hull of its
+    window (a large bulge, or a side recess such as a chamber, whose mouth the hull bridges) is
+    taken for an object in front of the shell.
     """
     p = check_points(xyz, name="xyz")
     window = _positive("window", window)
@@ -243,7 +264,7 @@ def classify_shell(
     env, obl = outer_envelope(win, theta, rho, sectors=int(sectors))
     off = rho - env
     near = off >= -search_tolerance * np.minimum(obl, max_obliquity)
-    env, obl = _mean_envelope(win, theta, rho, near, sectors=int(sectors))
+    env, obl = _upper_envelope(win, theta, rho, near, sectors=int(sectors))
     f = np.minimum(obl, max_obliquity)
     off = rho - env
     shell = (off >= -inner_tolerance * f) & (off <= outer_tolerance * f)
