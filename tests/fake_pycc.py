@@ -109,8 +109,6 @@ class ccScalarField:  # noqa: N801
 class ccHObject:  # noqa: N801
     def __init__(self, name: str = "") -> None:
         self._name = name
-        self.children: list[Any] = []
-        self.enabled = True
         self._shift = np.zeros(3)
         self._scale = 1.0
 
@@ -119,12 +117,6 @@ class ccHObject:  # noqa: N801
 
     def setName(self, name: str) -> None:  # noqa: N802
         self._name = str(name)
-
-    def setEnabled(self, state: bool) -> None:  # noqa: N802
-        self.enabled = bool(state)
-
-    def addChild(self, child: Any) -> None:  # noqa: N802
-        self.children.append(child)
 
     # ccShiftedObject
     def getGlobalShift(self) -> CCVector3d:  # noqa: N802

@@ -172,7 +172,7 @@ def test_make_polyline(pycc, adapter):
     pts = _survey_points(7, seed=5)
     poly, vertices = adapter.make_polyline(pts, like=ref, name="axis", colour=(0, 255, 0))
     assert poly.indices == list(range(7)) and not poly.closed and poly.getName() == "axis"
-    assert poly.children == [vertices] and not vertices.enabled
+    assert poly.cloud is vertices and vertices.getName() == "axis vertices"
     assert poly.colour.g == 255 and poly.colours_shown
     assert np.abs(adapter.read_points(poly.cloud) - pts).max() < 1e-5
     shift, _ = adapter.shift_and_scale(poly)

@@ -434,9 +434,9 @@ def make_polyline(
 ) -> tuple[Any, Any]:
     """An open ``ccPolyline`` through ``points`` (M, 3), global metres.
 
-    Returns ``(polyline, vertices)``. The vertex cloud is attached as the polyline's child
-    where the runtime allows it; the caller must keep a reference to ``vertices`` otherwise
-    (Python owns it until CloudCompare does).
+    Returns ``(polyline, vertices)``. The runtime exposes no ``addChild``: the caller must
+    keep a Python reference to ``vertices`` for as long as the polyline lives (as the
+    runtime's own polyline example does); only the polyline goes into the DB tree.
     """
     pycc = _pycc()
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -450,8 +450,6 @@ def make_polyline(
     if colour is not None and hasattr(pycc, "Rgb"):
         _try(poly, "setColor", pycc.Rgb(*colour))
         _try(poly, "showColors", True)
-    if _try(poly, "addChild", vertices):
-        _try(vertices, "setEnabled", False)
     return poly, vertices
 
 
