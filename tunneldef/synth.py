@@ -560,13 +560,6 @@ class _Axis:
         ver = np.stack([-sa * cp, -sa * sp, np.full_like(s, ca)], axis=-1)
         return c, t, lat, ver
 
-    def to_xyz(self, s: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Design-frame coordinates of section points ``(s, u, v)``, shape (N, 3)."""
-        c, _, lat, ver = self.frames(s)
-        c += u[:, None] * lat
-        c += v[:, None] * ver
-        return c
-
     def centerline(self, s0: float, s1: float, *, step: float = 0.05) -> Centerline:
         n = max(int(np.ceil((s1 - s0) / step)), 1) + 1
         s = np.linspace(s0, s1, n)
