@@ -91,8 +91,12 @@ class Centerline:
         n = max(int(np.ceil(s[-1] / step)), 1) + 1
         t = np.linspace(0.0, s[-1], n)
         pts = np.stack([np.interp(t, s, v[:, i]) for i in range(3)], axis=1)
-        return cls(pts, t, np.empty((0, 3)) if centres is None else np.asarray(centres, float),
-                   dict(meta or {}))
+        return cls(
+            pts,
+            t,
+            np.empty((0, 3)) if centres is None else np.asarray(centres, float),
+            dict(meta or {}),
+        )
 
     @property
     def length(self) -> float:
@@ -103,8 +107,11 @@ class Centerline:
         cache = self.__dict__.get("_frames_cache")
         if cache is None:
             p = self.points
-            t = np.gradient(p, self.chainage, axis=0) if len(p) > 2 else np.repeat(
-                (p[1] - p[0])[None], len(p), axis=0)
+            t = (
+                np.gradient(p, self.chainage, axis=0)
+                if len(p) > 2
+                else np.repeat((p[1] - p[0])[None], len(p), axis=0)
+            )
             t /= np.linalg.norm(t, axis=1, keepdims=True)
             up = np.array([0.0, 0.0, 1.0])
             lat = np.cross(up, t)
@@ -138,8 +145,11 @@ class Centerline:
     def frame_at(self, s: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit tangent, lateral (left) and vertical (up) vectors at chainage ``s``, each (N, 3)."""
         s = np.atleast_1d(np.asarray(s, dtype=np.float64))
-        i = np.clip(np.round(np.interp(s, self.chainage, np.arange(len(self.chainage)))), 0,
-                    len(self.chainage) - 1).astype(np.intp)
+        i = np.clip(
+            np.round(np.interp(s, self.chainage, np.arange(len(self.chainage)))),
+            0,
+            len(self.chainage) - 1,
+        ).astype(np.intp)
         t, lat, ver = self._frames()
         return t[i], lat[i], ver[i]
 
@@ -166,8 +176,11 @@ class Centerline:
         u = np.einsum("ij,ij->i", d, t[i])
         s = self.chainage[i] + u
         # re-anchor on the sample nearest to the foot point, then measure offsets there
-        j = np.clip(np.round(np.interp(s, self.chainage, np.arange(len(self.chainage)))),
-                    0, len(self.chainage) - 1).astype(np.intp)
+        j = np.clip(
+            np.round(np.interp(s, self.chainage, np.arange(len(self.chainage)))),
+            0,
+            len(self.chainage) - 1,
+        ).astype(np.intp)
         d = p - self.points[j]
         u = np.einsum("ij,ij->i", d, t[j])
         s = self.chainage[j] + u
