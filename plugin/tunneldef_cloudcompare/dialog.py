@@ -1,13 +1,15 @@
 """The parameter dialog of "Detect deformation" and small message helpers.
 
-CloudCompare's Python runtime ships PySide2; it is imported lazily here and never declared as a
-dependency of the package. Without Qt (or without a running QApplication) the functions fall
-back to plain behaviour: the defaults are used as they are and messages go to the log/console.
+CloudCompare's Python runtime ships a Qt binding (PySide2; newer Windows builds PySide6); it
+is imported lazily here and never declared as a dependency of the package. Without Qt (or
+without a running QApplication) the functions fall back to plain behaviour: the defaults are
+used as they are and messages go to the log/console.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import logging
 from typing import Any
 
@@ -22,15 +24,15 @@ METHODS = ("knn", "robust")
 
 
 def qt_widgets() -> Any:
-    """``PySide2.QtWidgets`` if it can be used now (module present and a QApplication
-    running), else None."""
-    try:
-        from PySide2 import QtWidgets  # noqa: PLC0415 - optional, inside CloudCompare only
-    except ImportError:
-        return None
-    if QtWidgets.QApplication.instance() is None:
-        return None
-    return QtWidgets
+    """``QtWidgets`` of PySide6 or PySide2 if usable now (module present and a QApplication
+    running, i.e. CloudCompare's GUI), else None."""
+    for binding in ("PySide6", "PySide2"):
+        try:
+            qtw = importlib.import_module(f"{binding}.QtWidgets")
+        except ImportError:
+            continue
+        return qtw if qtw.QApplication.instance() is not None else None
+    return None
 
 
 def show_message(text: str, *, title: str = "tunneldef", error: bool = False) -> None:
@@ -118,12 +120,14 @@ def _qt_dialog(qw: Any, first: str, second: str, params: DetectParams) -> Detect
     move.setChecked(params.move_original)
     form.addRow("", move)
 
-    buttons = qw.QDialogButtonBox(qw.QDialogButtonBox.Ok | qw.QDialogButtonBox.Cancel)
+    std = getattr(qw.QDialogButtonBox, "StandardButton", qw.QDialogButtonBox)
+    buttons = qw.QDialogButtonBox(std.Ok | std.Cancel)
     buttons.accepted.connect(dlg.accept)
     buttons.rejected.connect(dlg.reject)
     form.addRow(buttons)
 
-    if not dlg.exec_():
+    run = getattr(dlg, "exec", None) or dlg.exec_  # PySide6 / PySide2
+    if not run():
         return None
     return dataclasses.replace(
         params,
