@@ -17,7 +17,14 @@ import numpy as np
 
 from ..cloud import Cloud
 from ..errors import UnsupportedFormatError
-from ._common import coordinate_dtype, corrupt, safe_name, storable, text_format, write_table
+from ._common import (
+    coordinate_dtype,
+    corrupt,
+    safe_name,
+    storable,
+    text_format,
+    write_table,
+)
 
 __all__ = ["read", "write"]
 

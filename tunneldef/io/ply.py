@@ -11,6 +11,7 @@ exceed 1e4 m (survey coordinates), float otherwise.
 from __future__ import annotations
 
 import logging
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ import plyfile
 
 from ..cloud import Cloud
 from ..errors import CorruptFileError
-from ._common import coordinate_dtype, corrupt, safe_name, storable
+from ._common import coordinate_dtype, corrupt, safe_name, storable, text_format, write_table
 
 __all__ = ["read", "write", "SCALAR_PREFIX"]
 
@@ -31,29 +32,115 @@ SCALAR_PREFIX = "scalar_"
 _PLY_TYPES = ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8")
 
 
+_TYPE_NAMES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+
+
 def read(path: Path) -> Cloud:
     """Read the vertex element of a PLY file (ascii, binary little or big endian)."""
+    fast = _read_plain_ascii(path)
+    if fast is not None:
+        return fast
     try:
         with open(path, "rb") as stream:
-            ply = plyfile.PlyData.read(stream, mmap=False)
+            ply = plyfile.PlyData.read(stream)
     except (plyfile.PlyParseError, UnicodeDecodeError, ValueError) as exc:
         raise corrupt(path, exc) from exc
     try:
         vertex = ply["vertex"]
     except KeyError:
         raise CorruptFileError(f"cannot read {path}: it has no 'vertex' element") from None
-    data = vertex.data
-    scalar = [p for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty)]
     skipped = [p.name for p in vertex.properties if isinstance(p, plyfile.PlyListProperty)]
     if skipped:
         logger.warning("%s: list properties %s of 'vertex' are not read", path, skipped)
     others = [el.name for el in ply.elements if el.name != "vertex"]
     if others:
         logger.info("%s: elements %s besides 'vertex' are not read", path, others)
-    prop_names = [p.name for p in scalar]
+    columns = {
+        p.name: vertex.data[p.name]
+        for p in vertex.properties
+        if not isinstance(p, plyfile.PlyListProperty)
+    }
+    info = {
+        "text": bool(ply.text),
+        "byte_order": ply.byte_order,
+        "comments": list(ply.comments),
+        "obj_info": list(ply.obj_info),
+    }
+    return _to_cloud(path, columns, info)
+
+
+def _read_plain_ascii(path: Path) -> Cloud | None:
+    """Ascii PLY with only a vertex element of scalar properties, parsed by numpy.
+
+    plyfile parses ascii rows one by one in Python; this handles the common case in C.
+    Returns None for anything else (binary, faces, list properties), left to plyfile.
+    """
+    with open(path, "rb") as stream:
+        head = stream.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return None
+    try:
+        lines = head[:end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        return None
+    info: dict[str, Any] = {"text": True, "byte_order": "=", "comments": [], "obj_info": []}
+    props: list[tuple[str, str]] = []
+    count = None
+    for line in lines[1:]:
+        words = line.split()
+        if not words:
+            continue
+        key = words[0]
+        if key == "format" and words[1:2] != ["ascii"]:
+            return None
+        if key in ("comment", "obj_info"):
+            info["comments" if key == "comment" else "obj_info"].append(line[len(key) + 1 :])
+        elif key == "element":
+            if count is not None or len(words) != 3 or words[1] != "vertex":
+                return None
+            count = int(words[2]) if words[2].isdigit() else None
+            if count is None:
+                return None
+        elif key == "property":
+            if len(words) != 3 or words[1] not in _TYPE_NAMES:
+                return None
+            props.append((words[2], _TYPE_NAMES[words[1]]))
+    if count is None or not props:
+        return None
+    body_start = end + len(b"end_header")
+    with open(path, "rb") as stream:
+        stream.seek(body_start)
+        stream.readline()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+                table = np.loadtxt(stream, dtype=np.float64, ndmin=2, max_rows=count)
+        except ValueError as exc:
+            raise corrupt(path, exc) from exc
+    if count and table.shape != (count, len(props)):
+        raise corrupt(
+            path,
+            f"expected {count} vertex rows of {len(props)} values, found "
+            f"{table.shape[0]} rows of {table.shape[1]}",
+        )
+    if count == 0:
+        table = np.empty((0, len(props)))
+    columns = {name: table[:, k].astype(typ) for k, (name, typ) in enumerate(props)}
+    return _to_cloud(path, columns, info)
+
+
+def _to_cloud(path: Path, columns: dict[str, np.ndarray], info: dict[str, Any]) -> Cloud:
+    """Cloud from vertex property columns: x, y, z as coordinates, the rest as fields."""
+    prop_names = list(columns)
     if not all(c in prop_names for c in "xyz"):
         raise CorruptFileError(f"cannot read {path}: the vertex element has no x, y, z")
-    xyz = np.column_stack([np.asarray(data[c], dtype=np.float64) for c in "xyz"])
+    xyz = np.column_stack([np.asarray(columns[c], dtype=np.float64) for c in "xyz"])
     fields: dict[str, np.ndarray] = {}
     names: dict[str, str] = {}
     for prop in prop_names:
@@ -64,20 +151,12 @@ def read(path: Path) -> Cloud:
             name = prop[len(SCALAR_PREFIX) :]
             if name in prop_names or name in ("x", "y", "z"):
                 name = prop
-        values = np.asarray(data[prop])
+        values = np.asarray(columns[prop])
         fields[name] = np.ascontiguousarray(values.astype(values.dtype.newbyteorder("=")))
         names[name] = prop
-    meta = {
-        "ply": {
-            "text": bool(ply.text),
-            "byte_order": ply.byte_order,
-            "comments": list(ply.comments),
-            "obj_info": list(ply.obj_info),
-            "names": names,
-            "xyz_dtype": np.dtype(data["x"].dtype).newbyteorder("=").str,
-        }
-    }
-    return Cloud(xyz, fields, meta)
+    info["names"] = names
+    info["xyz_dtype"] = np.dtype(columns["x"].dtype).newbyteorder("=").str
+    return Cloud(xyz, fields, {"ply": info})
 
 
 def write(
@@ -115,4 +194,10 @@ def write(
         obj_info=list(source.get("obj_info", [])),
     )
     with open(path, "wb") as stream:
-        ply.write(stream)
+        if not text:
+            ply.write(stream)
+            return
+        # plyfile formats ascii rows one by one through np.savetxt; rows in bulk instead
+        stream.write((ply.header + "\n").encode("ascii"))
+        values = [data[name] for name in data.dtype.names]
+        write_table(stream, values, [text_format(v) for v in values], " ")
