@@ -392,3 +392,40 @@ def test_detect_action_with_real_core(pycc, plugin, monkeypatch):
     ref_line = adapter.read_points(made.ref_centerline.cloud)
     assert np.abs(ref_line - res.ref_centerline.points).max() < 1e-4
     assert res.ref_centerline.length > 15.0  # a 20 m tunnel (the overlap of both scans)
+
+
+@pytest.mark.slow
+def test_extract_centerline_action_with_real_core(pycc, plugin, monkeypatch, capsys):
+    """The real centreline extraction through the action: polyline = the result's curve, and
+    the console table = the result's slices."""
+    try:
+        import tunneldef.centerline as centerline
+        from tunneldef.synth import TunnelSpec, make_tunnel
+    except ImportError as exc:
+        pytest.skip(f"core not available yet: {exc}")
+    from tunneldef_cloudcompare import adapter
+
+    seen = {}
+    real = centerline.extract_centerline
+
+    def spy(xyz, *, config=None, progress=None):
+        seen["res"] = real(xyz, config=config, progress=progress)
+        return seen["res"]
+
+    monkeypatch.setattr(centerline, "extract_centerline", spy)
+    cloud, _ = make_tunnel(TunnelSpec(length=16.0, density=60.0, outlier_fraction=0.0), seed=1)
+    xyz = np.round((cloud.xyz + [512000.0, 5611000.0, 310.0]) * 2**16) / 2**16
+    e = _entity(pycc, xyz, "drift", shift=-np.round(xyz.mean(axis=0)))
+    pycc.GetInstance().selected = [e]
+    poly = plugin.extract_centerline()
+    assert poly is not None
+    res = seen["res"]
+    assert np.abs(adapter.read_points(poly.cloud) - res.centerline.points).max() < 1e-4
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()]
+    start = next(i for i, r in enumerate(rows) if r[:3] == ["chainage", "width", "height"])
+    table = rows[start + 1 : start + 1 + len(res.slices)]
+    assert len(table) == len(res.slices)
+    widths = np.array([float(r[1]) for r in table])
+    expected = np.array([s.width for s in res.slices])
+    np.testing.assert_allclose(widths, expected, atol=5e-4, equal_nan=True)
+    assert 5.5 < np.nanmedian(widths) < 6.1  # the synthetic section is 5.8 m wide
