@@ -11,12 +11,14 @@ From CloudCompare's command line (the Python runtime plugin must be installed)::
     CloudCompare -SILENT -O ref.las -O cmp.las -PYTHON_SCRIPT detect_in_cloudcompare.py \
         [OUT.ply] [--threshold 0.05] [--k 3] [--method knn]
 
-The FIRST loaded cloud is the reference. The compared cloud receives the scalar fields
-(``deformation``, ``deformation_horizontal``, ``deformation_vertical``, ``chainage``,
-``danger``, ...; same-named fields are replaced), so a later ``-SAVE_CLOUDS`` writes them; its
-coordinates are left as loaded. OUT (default: ``<compared>_deformation.ply`` next to the
-compared file) is written with tunneldef's writer: the compared points in the reference frame
-with all fields (the ``tunneldef detect`` output contract). The 4 x 4 transform is printed.
+The FIRST loaded cloud is the reference. Put ``-PYTHON_SCRIPT`` last: the runtime hands every
+argument after the script name to the script. OUT (default: ``<compared>_deformation.ply``
+next to the compared file) is written with tunneldef's writer: the compared points in the
+reference frame with all fields (the ``tunneldef detect`` output contract), plus
+``OUT.json`` with the summary (transform, centrelines, sections). The loaded compared cloud
+also receives the scalar fields (``deformation``, ``deformation_horizontal``,
+``deformation_vertical``, ``chainage``, ``danger``, ...; same-named fields replaced); its
+coordinates are left as loaded. The 4 x 4 transform is printed.
 
 Requires ``tunneldef`` installed in CloudCompare's Python (see docs/cloudcompare.md).
 """
@@ -87,6 +89,13 @@ def run_command_line(cli: Any, argv: list[str]) -> int:
     adapter.write_scalar_fields(cmp_e, adapter.result_fields(result.cloud))
     out = args.output or _default_output(descs[1])
     write(out, result.cloud)
+    if hasattr(result, "summary"):
+        import json
+
+        summary = os.path.splitext(out)[0] + ".json"
+        with open(summary, "w", encoding="utf-8") as fh:
+            json.dump(result.summary(), fh, indent=1)
+        print(f"[tunneldef] wrote {summary}")
     print(
         "[tunneldef] compared -> reference transform:\n" + adapter.format_matrix(result.transform)
     )

@@ -4,6 +4,7 @@ viewer (non-GUI path), and round trips through the real CloudCompare 2.11 comman
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import runpy
 import shutil
@@ -135,7 +136,11 @@ def test_detect_script_command_line_mode(pycc_cli, monkeypatch, tmp_path, capsys
 
     res_cloud = _result_cloud(500)
     shift = -np.round(res_cloud.xyz.mean(axis=0))
-    result = SimpleNamespace(cloud=res_cloud, transform=np.eye(4))
+    result = SimpleNamespace(
+        cloud=res_cloud,
+        transform=np.eye(4),
+        summary=lambda: {"transform_compared_to_reference": np.eye(4).tolist()},
+    )
     try:
         pipeline = importlib.import_module("tunneldef.pipeline")
     except ImportError:
@@ -166,6 +171,8 @@ def test_detect_script_command_line_mode(pycc_cli, monkeypatch, tmp_path, capsys
     assert cmp_e.getNumberOfScalarFields() == 5  # replaced, not duplicated
     text = capsys.readouterr().out
     assert "compared -> reference transform" in text and str(out) in text
+    summary = json.loads((tmp_path / "cmp_deformation.json").read_text())
+    assert summary["transform_compared_to_reference"] == np.eye(4).tolist()
 
     pycc_cli._CMDLINE = pycc_cli.ccCommandLineInterface([pycc_cli.CLCloudDesc(ref_e)])
     assert script.main([]) == 2
@@ -387,8 +394,6 @@ json.dump({{"argv": args}}, open(summary, "w"))
 def test_batch_full_chain(tmp_path, monkeypatch):
     """REF CMP -> `tunneldef detect` (a stub with the CLI's interface: the real pipeline runs
     in the plugin tests) -> CloudCompare colours and exports."""
-    import json
-
     bindir = tmp_path / "bin"
     bindir.mkdir()
     stub = bindir / "tunneldef"
