@@ -395,6 +395,51 @@ def test_text_without_header_and_cloudcompare_header(tmp_path: Path) -> None:
     np.testing.assert_array_equal(got.fields["intensity"], [5, 6])
 
 
+def test_ply_with_faces_and_big_endian(tmp_path: Path) -> None:
+    rng = np.random.default_rng(8)
+    vertex = np.empty(4, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("scalar_d", "f4")])
+    for c in "xyz":
+        vertex[c] = ORIGIN["xyz".index(c)] + rng.random(4)
+    vertex["scalar_d"] = rng.random(4).astype(np.float32)
+    faces = np.array([([0, 1, 2],), ([1, 2, 3],)], dtype=[("vertex_indices", "i4", (3,))])
+    mesh = tmp_path / "mesh.ply"
+    plyfile.PlyData(
+        [plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(faces, "face")],
+        text=True,
+    ).write(str(mesh))
+    cloud = read(mesh)  # plyfile's own parser (faces are not read)
+    np.testing.assert_array_equal(cloud.xyz, np.column_stack([vertex[c] for c in "xyz"]))
+    np.testing.assert_array_equal(cloud.fields["d"], vertex["scalar_d"])
+
+    big = tmp_path / "big_endian.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], byte_order=">").write(str(big))
+    cloud = read(big)
+    assert cloud.fields["d"].dtype == np.float32
+    write(tmp_path / "again.ply", cloud)
+    again = plyfile.PlyData.read(str(tmp_path / "again.ply"))
+    assert again.byte_order == ">"
+    np.testing.assert_array_equal(again["vertex"]["scalar_d"], vertex["scalar_d"])
+
+
+def test_text_comment_line_is_not_a_header(tmp_path: Path) -> None:
+    path = tmp_path / "commented.txt"
+    path.write_text("# exported by a scanner, units m\n1 2 3 9\n4 5 6 8\n")
+    cloud = read(path)
+    np.testing.assert_array_equal(cloud.xyz, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(cloud.fields["column_4"], [9, 8])
+
+
+def test_synthetic_epoch_with_truth_fields(tmp_path: Path) -> None:
+    from tunneldef.synth import TunnelSpec, make_tunnel
+
+    cloud, truth = make_tunnel(TunnelSpec(length=6.0, density=60.0), seed=3)
+    cloud = cloud.transformed(np.vstack([np.column_stack([np.eye(3), ORIGIN]), [0, 0, 0, 1]]))
+    cloud.add_fields({"label": truth.label, "surface": truth.surface, "chainage": truth.chainage})
+    for name in ("epoch.laz", "epoch.ply", "epoch.pcd"):
+        write(tmp_path / name, cloud)
+        assert_round_trip(read(tmp_path / name), cloud)
+
+
 def test_fields_selection(tmp_path: Path) -> None:
     cloud = survey_cloud(100)
     for name in ("sel.ply", "sel.las", "sel.pcd", "sel.xyz"):
