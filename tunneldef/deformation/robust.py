@@ -99,6 +99,12 @@ class RobustDeformation:
         Index of the core point each point took its values from.
     core_xyz : ndarray, shape (C, 3)
         Core points, metres, in the input frame.
+    core_normal : ndarray, shape (C, 3)
+        Outward unit normal of each core.
+    core_radius : ndarray, shape (C,)
+        Cylinder radius each core was measured with, metres.
+    core_ref_depth : ndarray, shape (C,)
+        Half-length along the normal within which its reference points were taken, metres.
     meta : dict
         Parameters used and counts (cores, fallbacks, NaN cores).
     """
@@ -113,6 +119,9 @@ class RobustDeformation:
     sigma_cmp: np.ndarray
     core: np.ndarray
     core_xyz: np.ndarray
+    core_normal: np.ndarray
+    core_radius: np.ndarray
+    core_ref_depth: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
 
 
@@ -247,20 +256,22 @@ def _clipped_stats(
     """Robust location, spread and count of ``values`` (positions along the outward normal)
     per group.
 
-    ``group`` must be sorted (non-decreasing). Values farther than ``max(k * s, floor)`` from
-    their group's median are dropped (``s`` = interquartile range / 1.349), then the lowest
-    ``trim`` fraction of each group (the innermost points: cables, pipe backs, the other
-    surface near a corner all lie inward of the shell; the rock behind it is clean), and a
-    last pass drops values farther than ``k`` standard deviations from the survivors' mean.
-    The location is the mean of the survivors, the spread is ``s`` (for the level of
-    detection) and the count is the number of survivors. Groups without values get NaN and 0.
+    ``group`` must be sorted (non-decreasing). Quantiles are order statistics:
+    ``sorted[floor(p * (n - 1))]``. (1) Values farther than ``max(k * s, floor)`` from their
+    group's median are dropped (``s`` = interquartile range / 1.349); the standard deviation of
+    the survivors is the spread returned (for the level of detection). (2) Values below the
+    group's ``trim`` quantile are dropped too: the innermost points (cables, pipe backs, the
+    other surface near a corner all lie inward of the shell; the rock behind it is clean).
+    (3) Values farther than ``k`` standard deviations from the survivors' mean are dropped.
+    Returns the mean of the last survivors, the spread and their count; groups without values
+    get NaN and 0.
     """
     cnt = np.bincount(group, minlength=ngroups)
     if values.size:
         lo = float(values.min())
         span = float(values.max()) - lo + 1.0
         base = group * span
-        sv = np.sort(base + (values - lo)) - base + lo  # values sorted within each group
+        sv = values[np.argsort(base + (values - lo))]  # values sorted within each group
     else:
         sv = values
     start = np.cumsum(cnt) - cnt
@@ -436,6 +447,8 @@ def robust_deformation(
     # same depth, then within max_depth where its surface was not found there
     short = min(max_depth, cylinder_radius)
     out = {k: np.zeros(n_cores) for k in ("mr", "sr", "nr", "mc", "sc", "nc")}
+    radius_used = np.full(n_cores, cylinder_radius)
+    depth_used = np.full(n_cores, short)
     n_fallback = n_deep = 0
     wide_done = np.zeros(n_cores, dtype=bool)
     for start in range(0, n_cores, _CHUNK):
@@ -456,6 +469,7 @@ def robust_deformation(
                 )
                 for s_, w in zip(stats[:3], ref_deep, strict=True):
                     s_[deep] = w
+                depth_used[np.arange(sl.start, sl.stop)[deep]] = max_depth
         weak = (stats[2] < min_points) | (stats[5] < min_points)
         wide_done[sl] = weak
         if weak.any():
@@ -467,6 +481,8 @@ def robust_deformation(
             ]
             for s_, w in zip(stats, wide, strict=True):
                 s_[weak] = w
+            radius_used[np.arange(sl.start, sl.stop)[weak]] = 2.0 * cylinder_radius
+            depth_used[np.arange(sl.start, sl.stop)[weak]] = max_depth
         for key, s_ in zip(out, stats, strict=True):
             out[key][sl] = s_
         report(progress, "robust deformation", 0.2 + 0.7 * sl.stop / n_cores)
@@ -488,6 +504,8 @@ def robust_deformation(
         ]
         for key, w in zip(out, wide, strict=True):
             out[key][ids] = w
+        radius_used[ids] = 2.0 * cylinder_radius
+        depth_used[ids] = max_depth
     n_fallback += len(rough_ids)
     report(progress, "robust deformation", 0.95)
 
@@ -527,6 +545,9 @@ def robust_deformation(
         sigma_cmp=out["sc"][inverse],
         core=inverse,
         core_xyz=cores + origin,
+        core_normal=normal,
+        core_radius=radius_used,
+        core_ref_depth=depth_used,
         meta={
             "method": "robust",
             "normal_radius": normal_radius,
@@ -582,8 +603,9 @@ def _assign_cores(
     whose plane passes closest to it.
     """
     planar = valid & (variation <= _MAX_VARIATION)
+    corner = np.isfinite(variation) & (variation > _MAX_VARIATION)  # not: no reference near
     point_core = inverse.copy()
-    move = np.flatnonzero(~planar[inverse])
+    move = np.flatnonzero(corner[inverse])
     if move.size == 0 or not planar.any():
         return point_core
     ids = np.flatnonzero(planar)

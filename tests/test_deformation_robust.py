@@ -1,0 +1,210 @@
+"""Robust signed deformation (tunneldef.deformation.robust) against synthetic truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from tunneldef.deformation.robust import RobustDeformation, robust_deformation, voxel_cores
+from tunneldef.errors import ConfigError, InvalidCloudError
+from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
+
+LENGTH = 12.0
+SAG = 0.015  # the paper's Table 5 roof deformation, m
+
+
+def _pair(*, noise: float = 0.015, deformations=(), seed: int = 3, length=LENGTH, **tunnel):
+    spec = PairSpec(
+        tunnel=TunnelSpec(length=length, noise_sigma=noise, **tunnel),
+        deformations=tuple(deformations),
+        cmp_shift=0.0,
+        seed=seed,
+    )
+    return make_pair(spec)
+
+
+def _run(pair, **kw) -> RobustDeformation:
+    tr = pair.truth
+    return robust_deformation(pair.ref.xyz, tr.cmp_xyz_in_ref, tr.centerline, **kw)
+
+
+@pytest.fixture(scope="module")
+def sag_pair():
+    return _pair(deformations=[DeformationSpec(kind="roof_sag", chainage=6.0, amplitude=SAG)])
+
+
+@pytest.fixture(scope="module")
+def sag_result(sag_pair):
+    return _run(sag_pair)
+
+
+def _unchanged(tr) -> np.ndarray:
+    inner = (tr.chainage > 0.5) & (tr.chainage < LENGTH - 0.5)
+    return (tr.label == 0) & (tr.displacement == 0.0) & inner
+
+
+def test_noise_floor_on_unchanged_shell(sag_pair, sag_result):
+    # sigma 1.5 cm per axis, 400 points/m2, perfect registration: the paper's KNN distance
+    # reports ~27 mm here; the cylinder means must stay at the millimetre level
+    tr = sag_pair.truth
+    d = np.abs(sag_result.deformation[_unchanged(tr)])
+    assert np.isfinite(d).all()
+    assert d.mean() <= 0.0033  # target 3 mm, +10 % for the small sample
+    assert np.percentile(d, 95) <= 0.008
+    assert np.mean(d > 0.010) <= 0.006  # false alarms at a 10 mm threshold
+    # unbiased: the mean signed value over the unchanged shell is far below the noise
+    assert abs(np.mean(sag_result.deformation[_unchanged(tr)])) < 0.0005
+
+
+def test_sag_peak_and_detection(sag_pair, sag_result):
+    tr = sag_pair.truth
+    d = sag_result.deformation
+    shell = tr.label == 0
+    centre = np.argmin(np.where(shell, tr.displacement, np.inf))
+    disc = shell & (np.linalg.norm(tr.cmp_xyz_in_ref - tr.cmp_xyz_in_ref[centre], axis=1) < 0.3)
+    # peak: the median over a 0.3 m disc at the sag's centre, within 2 mm of the truth there
+    assert np.median(d[disc]) == pytest.approx(np.median(tr.displacement[disc]), abs=0.002)
+    core = shell & (tr.displacement <= -0.8 * SAG)
+    assert np.mean(d[core] < -0.010) >= 0.9  # recall at a 10 mm threshold in the sag core
+    half = shell & (tr.displacement <= -0.5 * SAG)
+    assert np.mean(d[half]) == pytest.approx(np.mean(tr.displacement[half]), abs=0.0015)
+    assert sag_result.significant[core].mean() >= 0.9
+
+
+def test_sign_on_roof_walls_and_floor():
+    a = 0.03
+    pair = _pair(
+        deformations=[
+            DeformationSpec(kind="roof_sag", chainage=2.5, amplitude=a),
+            DeformationSpec(kind="wall_bulge", chainage=6.0, amplitude=a, side="left"),
+            DeformationSpec(kind="wall_bulge", chainage=6.0, amplitude=-a, side="right"),
+            DeformationSpec(kind="floor_heave", chainage=9.5, amplitude=a),
+        ],
+        seed=4,
+    )
+    tr = pair.truth
+    r = _run(pair)
+    shell = tr.label == 0
+    patch = shell & (np.abs(tr.displacement) >= 0.5 * a)
+    for surface, sign in ((0, -1), (1, -1), (2, 1), (3, -1)):  # right wall moved outward
+        m = patch & (tr.surface == surface)
+        assert m.sum() > 200
+        assert np.sign(np.median(r.deformation[m])) == sign
+        # a few cores' noise (~3 mm each) on a patch of ~1 m2: 4 mm
+        assert np.median(r.deformation[m]) == pytest.approx(
+            np.median(tr.displacement[m]), abs=0.004
+        )
+    # normals point away from the centreline
+    roof = shell & (tr.surface == 0)
+    assert np.median(r.normal[roof, 2]) > 0.99
+    floor = shell & (tr.surface == 3)
+    assert np.median(r.normal[floor, 2]) < -0.99
+
+
+def test_lod_grows_with_noise():
+    quiet_pair = _pair(noise=0.005, seed=5, length=5.0)
+    quiet = _run(quiet_pair)
+    noisy = _run(_pair(noise=0.03, seed=5, length=5.0))
+    lq, ln = np.nanmedian(quiet.lod95), np.nanmedian(noisy.lod95)
+    assert ln > 4.0 * lq
+    # LoD95 ~ 1.96 sigma sqrt(2 / n) with ~50 points per epoch in a 0.2 m cylinder
+    n = np.nanmedian(noisy.n_ref)
+    assert ln == pytest.approx(1.96 * 0.03 * np.sqrt(2.0 / n), rel=0.35)
+    # the registration uncertainty adds 1.96 sigma_reg
+    reg = _run(quiet_pair, registration_sigma=0.004)
+    assert np.nanmedian(reg.lod95) == pytest.approx(lq + 1.96 * 0.004, abs=0.0005)
+
+
+def _brute_core(ref, cmp_, res, q, *, ref_core, cmp_core, max_depth=0.3, radius_c=0.2):
+    """Plain NumPy cylinder statistics of core q (float32 offsets as in the fast path)."""
+    c = res.core_xyz[q]
+    n = res.core_normal[q]
+    r = res.core_radius[q]
+    out = []
+    for pts, owner, depth in (
+        (ref, ref_core, res.core_ref_depth[q]),
+        (cmp_, cmp_core, min(max_depth, radius_c)),
+    ):
+        origin = ref.mean(axis=0)
+        off = (pts - origin).astype(np.float32) - (c - origin).astype(np.float32)
+        n32 = n.astype(np.float32)
+        a = np.einsum("ij,j->i", off, n32)
+        lat2 = np.einsum("ij,ij->i", off, off) - a * a
+        same = np.einsum("ij,j->i", res.core_normal[owner].astype(np.float32), n32)
+        inside = (lat2 <= r * r) & (np.abs(a) <= depth) & (same >= np.cos(np.radians(35.0)))
+        v = np.sort(a[inside].astype(np.float64))
+        m = len(v)
+
+        def quant(p, v=v, m=m):
+            return v[int(np.floor(p * (m - 1)))]
+
+        med, s = quant(0.5), (quant(0.75) - quant(0.25)) / 1.349
+        keep = np.abs(v - med) <= max(3 * s, 0.005)
+        keep &= v >= quant(0.2)
+        mu = v[keep].mean()
+        sd = v[keep].std(ddof=1)
+        keep &= np.abs(v - mu) <= max(3 * sd, 0.005)
+        out.append((v[keep].mean(), int(keep.sum())))
+    return out[1][0] - out[0][0], out[0][1], out[1][1]
+
+
+def test_vectorised_path_matches_numpy_reference():
+    pair = _pair(
+        deformations=[DeformationSpec(kind="roof_sag", chainage=6.0, amplitude=0.03)], seed=6
+    )
+    ref, cmp_ = pair.ref.xyz, pair.truth.cmp_xyz_in_ref
+    res = _run(pair)
+    # owner core of every point: the nearest core for reference points, the voxel's core for
+    # compared points (their normals decide which points belong to a core's surface)
+    _, ref_core = cKDTree(res.core_xyz).query(ref)
+    _, cmp_core = voxel_cores(cmp_ - ref.mean(axis=0), res.meta["core_spacing"])
+    rng = np.random.default_rng(0)
+    for i in rng.choice(np.flatnonzero(np.isfinite(res.deformation)), 12, replace=False):
+        d, nr, nc = _brute_core(ref, cmp_, res, res.core[i], ref_core=ref_core, cmp_core=cmp_core)
+        assert (res.n_ref[i], res.n_cmp[i]) == (nr, nc)
+        assert res.deformation[i] == pytest.approx(d, abs=1e-7)
+
+
+def test_every_point_gets_a_value_where_reference_exists():
+    pair = make_pair(
+        PairSpec(
+            tunnel=TunnelSpec(length=LENGTH, equipment=True, conveyor=True),
+            cmp_shift=3.0,
+            seed=7,
+        )
+    )
+    tr = pair.truth
+    r = _run(pair)
+    assert r.deformation.shape == (len(pair.cmp),)
+    overlap = tr.chainage < LENGTH - 0.6
+    beyond = tr.chainage > LENGTH + 0.8
+    # shell, equipment and coal all get a value; only stray points in mid-air (label 3) may
+    # have no reference surface within max_depth
+    assert np.isfinite(r.deformation[overlap & (tr.label != 3)]).all()
+    assert np.isnan(r.deformation[beyond & (tr.label == 0)]).mean() > 0.95
+    assert np.array_equal(np.isnan(r.lod95), np.isnan(r.deformation))
+    assert not r.significant[np.isnan(r.deformation)].any()
+
+
+def test_errors():
+    pair = _pair(seed=8)
+    ref, cmp_, line = pair.ref.xyz, pair.truth.cmp_xyz_in_ref, pair.truth.centerline
+    with pytest.raises(ConfigError, match="cylinder_radius"):
+        robust_deformation(ref, cmp_, line, cylinder_radius=0.0)
+    with pytest.raises(ConfigError, match="max_depth"):
+        robust_deformation(ref, cmp_, line, max_depth=-1.0)
+    with pytest.raises(ConfigError, match="registration_sigma"):
+        robust_deformation(ref, cmp_, line, registration_sigma=float("nan"))
+    with pytest.raises(ConfigError, match="min_points"):
+        robust_deformation(ref, cmp_, line, min_points=0)
+    with pytest.raises(InvalidCloudError, match="N x 3"):
+        robust_deformation(ref[:, :2], cmp_, line)
+    with pytest.raises(InvalidCloudError, match="NaN"):
+        bad = cmp_.copy()
+        bad[3, 1] = np.nan
+        robust_deformation(ref, bad, line)
+    with pytest.raises(InvalidCloudError, match="ref_mask"):
+        robust_deformation(ref, cmp_, line, ref_mask=np.ones(5, dtype=bool))
+    with pytest.raises(InvalidCloudError, match="fewer than 3"):
+        robust_deformation(ref, cmp_, line, ref_mask=np.zeros(len(ref), dtype=bool))
