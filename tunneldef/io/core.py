@@ -121,6 +121,8 @@ def _drop_nonfinite(cloud: Cloud, path: Path, *, strict: bool) -> Cloud:
 
 def _selected_fields(cloud: Cloud, fields: Iterable[str] | None) -> dict[str, np.ndarray]:
     n = len(cloud)
+    if isinstance(fields, str):
+        fields = [fields]
     names = list(cloud.fields) if fields is None else list(dict.fromkeys(fields))
     missing = [name for name in names if name not in cloud.fields]
     if missing:
