@@ -24,7 +24,7 @@ from ..errors import NotATunnelError, RegistrationError
 from ..frame import principal_frame
 from ..progress import ProgressCallback, report
 from .baselines import BASELINES
-from .centerline import fine_align, refine_stable
+from .centerline import fine_align, normals, refine_stable
 from .metrics import apply_transform, fitness, overlap_fraction, slice_fitness
 
 __all__ = ["register", "Registration", "METHODS"]
@@ -221,8 +221,16 @@ def register(
         ref_cl = ref_cl.transformed(f_ref)
         timings["centerlines"] = time.perf_counter() - t0
 
+    ref_n = cmp_n0 = None
+    if method == "centerline":
+        ref_n = normals(ref_l)
+        cmp_n0 = normals(cmp_s)
+    flips = list(enumerate(_flips(rc.coarse_vertical)))
+    if method != "centerline":
+        # the baselines start from the coarse candidate a quick rough ICP likes best
+        flips = [_best_flip(flips, f_cmp, ref_l, cmp_s, ref_tree)]
     candidates = []
-    for q, flip in enumerate(_flips(rc.coarse_vertical)):
+    for q, flip in flips:
         coarse = flip @ f_cmp
         cmp_l = apply_transform(coarse, cmp_s)
         t0 = time.perf_counter()
@@ -237,6 +245,8 @@ def register(
                     floor_distance=rc.floor_ransac_distance,
                     angle_step_deg=rc.plan_angle_step_deg,
                     axial_search=rc.axial_search,
+                    ref_normals=ref_n,
+                    cmp_normals=cmp_n0 @ coarse[:3, :3].T,
                 )
                 local, stages, info = fine.transform, fine.stages, dict(fine.info)
                 info["axial_uncertainty"] = fine.axial_uncertainty
@@ -254,7 +264,7 @@ def register(
         fit = fitness(d)
         stage_t[method if method != "centerline" else "fine"] = time.perf_counter() - t0
         candidates.append((score, fit, q, (coarse, local, stages, info, stage_t), ""))
-        report(progress, "registration", 0.5 + 0.2 * (q + 1) / len(_flips(rc.coarse_vertical)))
+        report(progress, "registration", 0.5 + 0.2 * (q + 1) / len(flips))
     ok = [c for c in candidates if c[3] is not None]
     if not ok:
         raise RegistrationError(f"the epochs could not be registered: {candidates[0][4]}")
@@ -299,6 +309,28 @@ def register(
     return Registration(
         transform, method, fit, per_slice, axial, overlap, world_stages, timings, info
     )
+
+
+def _best_flip(
+    flips: list[tuple[int, np.ndarray]],
+    f_cmp: np.ndarray,
+    ref_l: np.ndarray,
+    cmp_s: np.ndarray,
+    ref_tree: cKDTree,
+) -> tuple[int, np.ndarray]:
+    """The direction candidate with the best overlap after a rough point-to-plane ICP."""
+    best, best_score = flips[0], -1.0
+    for q, flip in flips:
+        coarse = flip @ f_cmp
+        cmp_l = apply_transform(coarse, cmp_s)
+        m = BASELINES["icp_plane"](
+            ref_l, cmp_l, np.eye(4), voxel=0.25, max_distance=1.0, iterations=15
+        )
+        d, _ = ref_tree.query(apply_transform(m, cmp_l[:: max(1, len(cmp_l) // 20000)]))
+        score = overlap_fraction(d, radius=0.15)
+        if score > best_score:
+            best, best_score = (q, flip), score
+    return best
 
 
 def _axis_line(ref_l: np.ndarray) -> Centerline:

@@ -146,9 +146,11 @@ def coarse_shift(
     -------
     shift : float
         A compared point at reference chainage ``s`` belongs at ``s + shift``, metres.
-    contrast : float
-        How much deeper the best match is than the median of the others, relative to it (0 on a
-        featureless prism).
+    spread : float
+        Half-width of the basin of shifts matching as well as the best within the noise, or
+        the distance to an equally good match outside it, metres (a bin or two when the overlap
+        has features along the axis, a large part of the search range on a featureless prism;
+        ``inf`` when nothing overlaps).
     """
     nb = int(np.ceil((centerline.length + 2 * search) / step))
     ref_img, _ = section_image(*ref_proj, start=-search, step=step, n_bins=nb)
@@ -160,10 +162,27 @@ def coarse_shift(
         ref_img, cmp_img, shifts, clip=clip, min_cells=max(int(min_overlap * n_cmp), 10)
     )
     if not np.isfinite(scores).any():
-        return 0.0, 0.0
+        return 0.0, float("inf")
     best = int(np.argmin(scores))
-    med = float(np.median(scores[np.isfinite(scores)]))
-    return float(shifts[best] * step), float((med - scores[best]) / max(med, 1e-12))
+    # shifts whose mismatch is within the noise of the best one are equally good matches:
+    # the mean of n squared differences scatters by about sqrt(2 / n) of itself
+    n_eff = max(int(np.isfinite(cmp_img).sum()) // 4, 1)
+    tol = scores[best] * (1.0 + 3.0 * np.sqrt(2.0 / n_eff))
+    alike = np.isfinite(scores) & (scores <= tol)
+    # the basin around the best shift is what the fine stage resolves; equally good matches
+    # outside it are other places the compared stretch could be
+    lo = best
+    while lo > 0 and alike[lo - 1]:
+        lo -= 1
+    hi = best
+    while hi < len(shifts) - 1 and alike[hi + 1]:
+        hi += 1
+    spread = float(max(best - lo, hi - best) * step)
+    outside = alike.copy()
+    outside[lo : hi + 1] = False
+    if outside.any():
+        spread = max(spread, float(np.max(np.abs(shifts[outside] - shifts[best])) * step))
+    return float(shifts[best] * step), spread
 
 
 def fine_shift(

@@ -125,7 +125,7 @@ def ndt(
     *,
     voxel: float = 0.05,
     cell: float = 0.5,
-    iterations: int = 40,
+    iterations: int = 30,
 ) -> np.ndarray:
     """Point-to-distribution NDT (Magnusson 2009), our vectorised implementation.
 
@@ -145,8 +145,8 @@ def ndt(
     ndarray, shape (4, 4)
         The cmp -> ref transform.
     """
-    src = np.asarray(_pcd(cmp_xyz, voxel).points)
-    ref = np.asarray(_pcd(ref_xyz, voxel / 2).points)
+    src = np.asarray(_pcd(cmp_xyz, 2 * voxel).points)
+    ref = np.asarray(_pcd(ref_xyz, voxel).points)
     t = np.asarray(init, dtype=np.float64).copy()
     c0 = ref.mean(axis=0)  # work about the reference centroid (numerics)
     for size in (2 * cell, cell):
@@ -159,7 +159,8 @@ def ndt(
         d2 = -2 * np.log((-np.log(c1 * np.exp(-0.5) + c2) - d3) / d1)
         for _ in range(iterations):
             x = src @ t[:3, :3].T + t[:3, 3] - c0
-            _, idx = tree.query(x, k=3, distance_upper_bound=size * 1.5)
+            _, idx = tree.query(x, k=2, distance_upper_bound=size)
+            idx = idx.reshape(len(x), -1)
             g = np.zeros(6)
             h = np.zeros((6, 6))
             for col in range(idx.shape[1]):
@@ -178,8 +179,9 @@ def ndt(
                 jac[:, 1, 0], jac[:, 1, 2] = -xo[:, 2], xo[:, 0]
                 jac[:, 2, 0], jac[:, 2, 1] = xo[:, 1], -xo[:, 0]
                 jac[:, :, 3:] = np.eye(3)
-                g += np.einsum("n,ni,nij->j", w, cq, jac)
-                h += np.einsum("n,nij,nik,nkl->jl", w, jac, ic, jac)
+                cj = np.matmul(ic, jac)  # (n, 3, 6)
+                g += np.einsum("n,ni,nij->j", w, q, cj, optimize=True)
+                h += np.einsum("nij,nik->jk", jac * w[:, None, None], cj, optimize=True)
             if not np.any(h):
                 break
             step = -np.linalg.solve(h + 1e-9 * np.eye(6), g)

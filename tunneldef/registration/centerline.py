@@ -33,7 +33,14 @@ from ..centerline.curve import Centerline
 from ..errors import RegistrationError
 from .axial import coarse_shift, fine_shift
 
-__all__ = ["FineResult", "fine_align", "floor_plane", "rotation_between", "refine_stable"]
+__all__ = [
+    "FineResult",
+    "fine_align",
+    "floor_plane",
+    "rotation_between",
+    "refine_stable",
+    "normals",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -222,6 +229,8 @@ def fine_align(
     floor_distance: float,
     angle_step_deg: float,
     axial_search: float,
+    ref_normals: np.ndarray | None = None,
+    cmp_normals: np.ndarray | None = None,
     plan_iterations: int = 2,
 ) -> FineResult:
     """Stages 2-4 of the centreline registration (paper §3.2.2-3.2.4).
@@ -238,6 +247,8 @@ def fine_align(
         Smallest rotation step of the plan alignment, degrees.
     axial_search : float
         Largest along-axis shift searched, metres.
+    ref_normals, cmp_normals : ndarray, shape (N, 3) and (M, 3), optional
+        Unit normals of the points (computed when not given).
 
     Returns
     -------
@@ -306,14 +317,14 @@ def fine_align(
 
     moved = _apply(total, cmp_xyz)
     p = ref_cl.project(moved)
-    coarse, contrast = coarse_shift(
+    coarse, spread = coarse_shift(
         ref_proj, (p.chainage, p.lateral, p.vertical), ref_cl, search=axial_search
     )
     total = slide(total, coarse)
     out.info["axial_coarse_shift"] = coarse
-    out.info["axial_contrast"] = contrast
-    ref_n = _normals(ref_xyz)
-    cmp_n = _normals(cmp_xyz)
+    out.info["axial_coarse_spread"] = spread
+    ref_n = ref_normals if ref_normals is not None else normals(ref_xyz)
+    cmp_n = cmp_normals if cmp_normals is not None else normals(cmp_xyz)
     tree = cKDTree(ref_xyz)
     shift = None
     for _ in range(plan_iterations):
@@ -336,8 +347,17 @@ def fine_align(
         out.info.setdefault("axial_fine_shifts", []).append(shift.shift)
     out.stages["plan"] = total.copy()
     out.timings["plan"] = time.perf_counter() - t0
-    out.axial_uncertainty = float(shift.uncertainty)
-    out.axial_informative = bool(shift.informative)
+    # a featureless overlap matches equally well at many shifts: then the coarse spread, not
+    # the local least-squares value, says how well the position along the axis is known
+    ambiguous = spread > 1.0
+    out.axial_uncertainty = float(spread if ambiguous else shift.uncertainty)
+    out.axial_informative = bool(shift.informative and not ambiguous)
+    if ambiguous:
+        logger.warning(
+            "the position along the axis is not determined (the overlap has no "
+            "feature along the tunnel; +-%.1f m)",
+            spread,
+        )
     out.transform = total
     return out
 
@@ -386,9 +406,10 @@ def refine_stable(
     return np.asarray(res.transformation)
 
 
-def _normals(xyz: np.ndarray, radius: float = 0.15) -> np.ndarray:
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
-    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+def normals(xyz: np.ndarray, radius: float = 0.15) -> np.ndarray:
+    """Unit normals (N, 3) of points (N, 3) from their neighbours within ``radius`` m."""
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz - xyz.mean(axis=0)))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=16))
     return np.asarray(pc.normals)
 
 

@@ -1,0 +1,261 @@
+"""Registration (paper §3.2): known-answer tests on synthetic pairs with an exact truth motion."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tunneldef.config import Config
+from tunneldef.errors import RegistrationError
+from tunneldef.registration import METHODS, Registration, register
+from tunneldef.registration.axial import coarse_shift, fine_shift
+from tunneldef.registration.centerline import normals
+from tunneldef.registration.metrics import (
+    apply_transform,
+    fitness,
+    point_rms_error,
+    rotation_error_deg,
+    slice_fitness,
+)
+from tunneldef.synth import (
+    DeformationSpec,
+    PairSpec,
+    SectionSpec,
+    TunnelSpec,
+    make_pair,
+    make_tunnel,
+)
+
+SAG = (DeformationSpec(kind="roof_sag", chainage=15.0, length=4.0, amplitude=0.03),)
+NO_REFINE = Config().replace(registration={"refine": False})
+
+
+def _pair(
+    radius=None,
+    yaw=37.0,
+    seed=3,
+    density=100.0,
+    kind="rectangle",
+    chamber=True,
+    equipment=True,
+    length=30.0,
+    **kw,
+):
+    tunnel = TunnelSpec(
+        length=length,
+        radius=radius,
+        density=density,
+        chamber=chamber,
+        equipment=equipment,
+        section=SectionSpec(kind=kind),
+    )
+    return make_pair(PairSpec(tunnel=tunnel, deformations=SAG, yaw_deg=yaw, seed=seed, **kw))
+
+
+def _truth_centerlines(pair):
+    """The design axis in each epoch's own frame (stands in for an extracted centreline)."""
+    ref_cl = pair.truth.centerline
+    return ref_cl, ref_cl.transformed(np.linalg.inv(pair.truth.transform))
+
+
+def _errors(reg, pair):
+    shell = pair.truth.label == 0
+    t = pair.truth.transform
+    return (
+        point_rms_error(reg.transform, t, pair.cmp.xyz[shell]),
+        rotation_error_deg(reg.transform, t),
+    )
+
+
+@pytest.mark.parametrize(
+    ("radius", "yaw"), [(None, 37.0), (None, 211.0), (80.0, 37.0), (80.0, 211.0)]
+)
+def test_centerline_registration_meets_targets(radius, yaw):
+    # straight and curved pairs, 3 cm roof sag, shifted stretch, two very different headings
+    pair = _pair(radius=radius, yaw=yaw, density=80.0)
+    ref_cl, cmp_cl = _truth_centerlines(pair)
+    reg = register(pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl)
+    rms, rot = _errors(reg, pair)
+    assert rms <= 0.01, rms
+    assert rot <= 0.05, rot
+    # the chamber fixes the position along the axis; its reported uncertainty is small
+    assert reg.axial_uncertainty < 0.02
+    assert reg.overlap > 0.9
+    # the compared points were drawn at 1.5 cm noise and 80 pts/m^2: NN RMSE ~5-6 cm
+    assert 0.02 < reg.fitness < 0.07
+
+
+def test_registration_through_real_centreline_extraction():
+    pair = _pair(radius=80.0, yaw=211.0, kind="arch", length=24.0)
+    reg = register(pair.ref.xyz, pair.cmp.xyz)
+    rms, rot = _errors(reg, pair)
+    assert rms <= 0.01, rms
+    assert rot <= 0.05, rot
+    assert set(reg.stages) == {"coarse", "cross_section", "longitudinal", "plan", "refine"}
+
+
+def test_pca_direction_flip_resolved():
+    # 180 degrees apart: the principal axis points the other way in one of the two; both
+    # must come out right, each keeping a different sign candidate
+    chosen = []
+    for yaw in (10.0, 190.0):
+        pair = _pair(yaw=yaw, seed=4, density=60.0, length=24.0)
+        ref_cl, cmp_cl = _truth_centerlines(pair)
+        reg = register(
+            pair.ref.xyz,
+            pair.cmp.xyz,
+            ref_centerline=ref_cl,
+            cmp_centerline=cmp_cl,
+            config=NO_REFINE,
+        )
+        rms, rot = _errors(reg, pair)
+        assert rms < 0.02 and rot < 0.05
+        cands = reg.info["direction_candidates"]
+        best = max(cands, key=lambda c: c["overlap"])
+        others = [c for c in cands if c is not best]
+        assert best["overlap"] - max(c["overlap"] for c in others) > 0.05
+        chosen.append(best["flip"])
+        assert not reg.info.get("direction_ambiguous", False)
+    assert chosen[0] != chosen[1]
+
+
+def test_each_stage_does_its_part():
+    pair = _pair(seed=5, yaw=300.0, tilt_deg=3.0)
+    ref_cl, cmp_cl = _truth_centerlines(pair)
+    reg = register(
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, config=NO_REFINE
+    )
+    t = pair.truth.transform
+    z = np.array([0.0, 0.0, 1.0])
+
+    def tilt(m):  # angle between where the stage puts "up" and where the truth puts it
+        e = m[:3, :3] @ np.linalg.inv(t[:3, :3])
+        return float(np.degrees(np.arccos(np.clip((e @ z) @ z, -1, 1))))
+
+    st = reg.stages
+    assert tilt(st["coarse"]) > 1.0  # PCA with world vertical leaves the tilt
+    assert tilt(st["cross_section"]) < 0.05  # the floor planes remove it
+    assert tilt(st["longitudinal"]) < 0.05
+    # the plan stage fixes heading and the shift of the stretch (2 m)
+    shell = pair.truth.label == 0
+    before = point_rms_error(st["longitudinal"], t, pair.cmp.xyz[shell])
+    after = point_rms_error(st["plan"], t, pair.cmp.xyz[shell])
+    assert before > 1.0 and after < 0.02
+    assert rotation_error_deg(st["plan"], t) < 0.05
+    assert abs(reg.info["floor_tilt_deg"] - 3.0) < 0.5
+
+
+def _unrolled(pair, offset):
+    cl = pair.truth.centerline
+    ref = pair.ref.xyz
+    cmp = pair.truth.cmp_xyz_in_ref + cl.frame_at(15.0)[0][0] * offset
+    pr, pc = cl.project(ref), cl.project(cmp)
+    return (
+        cl,
+        ref,
+        cmp,
+        (pr.chainage, pr.lateral, pr.vertical),
+        (pc.chainage, pc.lateral, pc.vertical),
+    )
+
+
+def test_axial_shift_on_a_chamber():
+    # the compared epoch displaced 1.37 m along the axis: the correlation of the unrolled
+    # sections finds it to a bin, the 1-DOF point-to-plane to a few millimetres
+    pair = _pair(equipment=False, seed=6)
+    cl, ref, cmp, pr, pc = _unrolled(pair, 1.37)
+    shift, spread = coarse_shift(pr, pc, cl, search=5.0)
+    assert abs(shift + 1.37) <= 0.25
+    assert spread <= 0.5
+    moved = cmp + cl.frame_at(15.0)[0][0] * shift
+    tan = cl.frame_at(cl.project(moved).chainage)[0]
+    sel = np.abs(np.einsum("ij,ij->i", normals(moved), tan)) > 0.25
+    res = fine_shift(
+        ref,
+        normals(ref),
+        moved[sel],
+        tan[sel],
+        blocks=np.floor(cl.project(moved[sel]).chainage).astype(int),
+    )
+    assert abs(shift + res.shift + 1.37) < 0.01
+    assert res.informative and 0 < res.uncertainty < 0.01
+
+
+def test_axial_shift_featureless_is_reported_unknown():
+    pair = _pair(equipment=False, chamber=False, seed=7)
+    cl, _, _, pr, pc = _unrolled(pair, 1.37)
+    _, spread = coarse_shift(pr, pc, cl, search=5.0)
+    assert spread > 2.0
+
+
+@pytest.mark.parametrize("method", ["icp_point", "icp_plane", "gicp", "ndt"])
+def test_baselines_improve_on_the_coarse_start(method):
+    pair = _pair(seed=8, yaw=75.0, length=20.0, density=60.0, cmp_shift=0.3)
+    reg = register(pair.ref.xyz, pair.cmp.xyz, method=method)
+    t = pair.truth.transform
+    shell = pair.truth.label == 0
+    coarse = reg.stages["coarse"]
+    assert reg.method == method and method in reg.stages
+    assert rotation_error_deg(reg.transform, t) < 0.5 * rotation_error_deg(coarse, t)
+    # along a prism the axial offset is weakly held: NDT closes it slowly, the ICPs fully
+    assert point_rms_error(reg.transform, t, pair.cmp.xyz[shell]) < 0.9 * point_rms_error(
+        coarse, t, pair.cmp.xyz[shell]
+    )
+
+
+def test_non_overlapping_epochs_raise():
+    # a wide straight rectangular drift and a narrow curved arched one: no common tunnel
+    ref, _ = make_tunnel(TunnelSpec(length=25, density=60), seed=1)
+    cmp, _ = make_tunnel(
+        TunnelSpec(
+            length=25,
+            density=60,
+            radius=30.0,
+            section=SectionSpec(kind="arch", width=3.0, height=2.5),
+        ),
+        seed=2,
+    )
+    with pytest.raises(RegistrationError, match="epochs"):
+        register(ref.xyz, cmp.xyz, method="icp_plane")
+
+
+def test_no_axis_raises():
+    rng = np.random.default_rng(0)
+    blob = rng.normal(size=(5000, 3))
+    ref, _ = make_tunnel(TunnelSpec(length=20, density=40), seed=1)
+    with pytest.raises(RegistrationError, match="no common tunnel axis"):
+        register(ref.xyz, blob, method="icp_plane")
+
+
+def test_unknown_method_raises():
+    ref, _ = make_tunnel(TunnelSpec(length=10, density=20), seed=1)
+    with pytest.raises(RegistrationError, match="unknown registration method"):
+        register(ref.xyz, ref.xyz, method="magic")
+    assert "centerline" in METHODS
+
+
+def test_fitness_and_to_dict():
+    d = np.array([0.01, 0.02, 0.5])
+    assert fitness(d, max_distance=0.1) == pytest.approx(np.sqrt((0.01**2 + 0.02**2) / 2))
+    pair = _pair(seed=9, length=20.0, density=60.0)
+    ref_cl, cmp_cl = _truth_centerlines(pair)
+    reg = register(
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, config=NO_REFINE
+    )
+    assert isinstance(reg, Registration)
+    out = json.loads(json.dumps(reg.to_dict()))
+    assert np.allclose(out["transform"], reg.transform)
+    assert out["method"] == "centerline" and len(out["slice_fitness"]) == 5
+    assert set(out["stages"]) == {"coarse", "cross_section", "longitudinal", "plan"}
+    # per-slice fitness against a direct computation on the registered points
+    moved = apply_transform(reg.transform, pair.cmp.xyz)
+    direct = slice_fitness(
+        pair.ref.xyz,
+        moved,
+        pair.truth.centerline,
+        chainages=[s["chainage"] for s in reg.slice_fitness],
+    )
+    for a, b in zip(direct, reg.slice_fitness, strict=True):
+        assert a["fitness"] == pytest.approx(b["fitness"], abs=0.01)
