@@ -171,7 +171,7 @@ def test_detect_writes_fields_and_adds_entities(pycc, plugin, core, pair):
     np.testing.assert_array_equal(np.asarray(cmp_e.points()), before)  # original not moved
     sf = cmp_e.getScalarField(cmp_e.getCurrentDisplayedScalarFieldIndex())
     assert sf.getName() == "deformation" and sf.symmetrical and sf.color_scale.name == "BWR"
-    assert sf.displayed[0] == -sf.displayed[1] == -made.limit
+    assert sf.saturation == [0.0, made.limit]
 
     db = pycc.GetInstance().db
     assert db == [made.registered, made.ref_centerline, made.cmp_centerline]

@@ -365,8 +365,10 @@ def show_diverging(entity: Any, name: str, *, limit: float) -> bool:
     """Display scalar field ``name`` with CloudCompare's Blue>White>Red scale centred on 0.
 
     Negative values (surface moved into the tunnel) are blue, positive red, white at 0, and
-    colours saturate symmetrically at ``±limit`` metres (``setSymmetricalScale`` plus the
-    saturation and display range). Each call is skipped if the runtime lacks it.
+    colours saturate symmetrically at ``±limit`` metres (``setSymmetricalScale``, saturation
+    0..limit on |value|). The display range is left at the field's min..max: CloudCompare
+    hides values outside it, and the largest changes must stay visible. Each call is skipped
+    if the runtime lacks it.
 
     Returns
     -------
@@ -385,8 +387,6 @@ def show_diverging(entity: Any, name: str, *, limit: float) -> bool:
     if manager is not None and hasattr(manager, "BWR"):
         scaled = _try(sf, "setColorScale", manager.GetDefaultScale(manager.BWR))
     _try(sf, "setSymmetricalScale", True)
-    _try(sf, "setMinDisplayed", -float(limit))
-    _try(sf, "setMaxDisplayed", float(limit))
     _try(sf, "setSaturationStart", 0.0)
     _try(sf, "setSaturationStop", float(limit))
     entity.showSF(True)
