@@ -69,6 +69,7 @@ class ccScalarField:  # noqa: N801
         self.color_scale: ccColorScale | None = None
         self.symmetrical = False
         self.saturation = [None, None]
+        self.displayed = [None, None]
 
     def getName(self) -> str:  # noqa: N802
         return self._name
@@ -97,6 +98,12 @@ class ccScalarField:  # noqa: N801
 
     def setSaturationStop(self, value: float) -> None:  # noqa: N802
         self.saturation[1] = float(value)
+
+    def setMinDisplayed(self, value: float) -> None:  # noqa: N802
+        self.displayed[0] = float(value)
+
+    def setMaxDisplayed(self, value: float) -> None:  # noqa: N802
+        self.displayed[1] = float(value)
 
 
 class ccHObject:  # noqa: N801

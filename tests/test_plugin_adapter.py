@@ -145,7 +145,7 @@ def test_show_diverging_centres_on_zero(pycc, adapter):
     assert e.getCurrentDisplayedScalarFieldIndex() == idx and e.sf_shown and e.sf_scale_shown
     assert sf.color_scale.name == "BWR" and sf.symmetrical
     assert sf.saturation == [0.0, 0.03]
-    assert not hasattr(sf, "displayed")  # display range untouched: nothing gets hidden
+    assert sf.displayed == [None, None]  # display range untouched: nothing gets hidden
     with pytest.raises(ValueError, match="no scalar field 'nope'"):
         adapter.show_diverging(e, "nope", limit=0.03)
 
