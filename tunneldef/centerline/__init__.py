@@ -139,6 +139,10 @@ class CenterlineResult:
         The curve the last pass was sliced along (None when it was the PCA axis).
     config : Config
         The parameters used.
+    roll : float
+        Roll of the section about the axis (radians, positive = the floor rises to the left),
+        estimated from the floor and roof cross-slopes and removed before the lines are found;
+        0 for a levelled scan.
     """
 
     centerline: Centerline
@@ -147,6 +151,7 @@ class CenterlineResult:
     passes: int = 1
     axis: Centerline | None = None
     config: Config = field(default_factory=Config)
+    roll: float = 0.0
 
     def table(self) -> list[dict[str, Any]]:
         """One dict per slice (see :meth:`SliceRecord.row`), for CSV."""
@@ -158,21 +163,85 @@ class CenterlineResult:
 
     def to_world(self, local: np.ndarray) -> np.ndarray:
         """World (N, 3) coordinates of (along, lateral, vertical) in the last pass's axes."""
-        local = np.atleast_2d(np.asarray(local, dtype=np.float64))
-        if self.axis is None:
-            return self.frame.to_world(local)
-        return _curve_to_world(self.axis)(local)
+        return _local_to_world(np.atleast_2d(local), self.axis, self.frame, self.roll)
 
     def slice_coordinates(self, xyz: np.ndarray) -> np.ndarray:
         """(N, 3) along / lateral / vertical coordinates of points in the last pass's axes."""
-        return _axis_coordinates(xyz, self.axis, self.frame)
+        return _axis_coordinates(xyz, self.axis, self.frame, self.roll)
 
 
-def _axis_coordinates(xyz: np.ndarray, axis: Centerline | None, frame: TunnelFrame) -> np.ndarray:
+def _roll(local: np.ndarray, angle: float) -> np.ndarray:
+    """Rotate (lateral, vertical) by ``-angle`` in place (levels a section rolled by ``angle``)."""
+    if angle:
+        c, s = np.cos(angle), np.sin(angle)
+        v, w = local[:, 1].copy(), local[:, 2].copy()
+        local[:, 1] = c * v + s * w
+        local[:, 2] = -s * v + c * w
+    return local
+
+
+def _axis_coordinates(
+    xyz: np.ndarray, axis: Centerline | None, frame: TunnelFrame, roll: float = 0.0
+) -> np.ndarray:
     if axis is None:
-        return frame.to_local(xyz)
+        return _roll(frame.to_local(xyz), roll)
     p = axis.project(xyz)
-    return np.stack([p.chainage, p.lateral, p.vertical], axis=1)
+    return _roll(np.stack([p.chainage, p.lateral, p.vertical], axis=1), roll)
+
+
+def _local_to_world(
+    local: np.ndarray, axis: Centerline | None, frame: TunnelFrame, roll: float = 0.0
+) -> np.ndarray:
+    local = _roll(np.array(local, dtype=np.float64), -roll)
+    if axis is None:
+        return frame.to_world(local)
+    return _curve_to_world(axis)(local)
+
+
+def _estimate_roll(local: np.ndarray, cfg: Config) -> float:
+    """Roll of the section about the axis (radians) from the cross-slopes of floor and roof.
+
+    Every metre a slice's floor and roof peaks are found (wide window only); the points within
+    two windows of each are fitted with a line across the tunnel (inner 80 % of their lateral
+    range, so wall corners do not count; one 3-MAD trim). The median slope is the roll. It is
+    taken as 0 below 0.1 degree (a levelled scan is left untouched) and when the slopes disagree
+    by more than 1 degree (robust spread: a rough floor, not a rolled scan).
+    """
+    c = cfg.centerline
+    slopes = []
+    for sl in slice_along_axis(
+        local[:, 0], step=max(cfg.slicing.step, 1.0), thickness=cfg.slicing.thickness
+    ):
+        if len(sl.index) < cfg.slicing.min_points:
+            continue
+        p = local[sl.index]
+        rf = roof_floor_lines(
+            p[:, 2], bandwidth=c.kde_bandwidth, min_share=c.min_peak_share, refine_bandwidth=None
+        )
+        if not rf.ok:
+            continue
+        for z0 in (rf.floor, rf.roof):
+            q = p[np.abs(p[:, 2] - z0) < 2 * c.kde_bandwidth]
+            if len(q) < 30:
+                continue
+            lo, hi = np.quantile(q[:, 1], [0.1, 0.9])
+            q = q[(q[:, 1] >= lo) & (q[:, 1] <= hi)]
+            if len(q) < 30 or hi - lo < 0.5:
+                continue
+            b, a = np.polyfit(q[:, 1], q[:, 2], 1)
+            r = q[:, 2] - (a + b * q[:, 1])
+            keep = np.abs(r - np.median(r)) <= 3 * 1.4826 * np.median(np.abs(r - np.median(r)))
+            if keep.sum() >= 30:
+                b, a = np.polyfit(q[keep, 1], q[keep, 2], 1)
+            slopes.append(b)
+    if len(slopes) < 3:
+        return 0.0
+    angles = np.arctan(slopes)
+    spread = 1.4826 * float(np.median(np.abs(angles - np.median(angles))))
+    if spread > np.radians(1.0):
+        return 0.0  # rough floor/roof, no common cross-slope: nothing to level
+    roll = float(np.median(angles))
+    return roll if abs(roll) >= np.radians(0.1) else 0.0
 
 
 def analyse_slice(
@@ -379,16 +448,19 @@ def extract_centerline(
             f"({c.min_slices} slices x {cfg.slicing.min_points} points); is the file complete?"
         )
     frame = principal_frame(pts, vertical=c.vertical)
-    local = frame.to_local(pts)
+    roll = _estimate_roll(frame.to_local(pts), cfg)
+    if roll:
+        logger.info("centreline: section rolled by %.2f deg about the axis", np.degrees(roll))
+    local = _axis_coordinates(pts, None, frame, roll)
     records = _slice_pass(local, cfg, progress, "centreline pass 1")
-    _centres(records, frame.to_world)
+    _centres(records, lambda loc: _local_to_world(loc, None, frame, roll))
     centerline = _fit(records, cfg, {"pass": 1, "axis": "pca"})
     axis: Centerline | None = None
     passes, shifts = 1, []
     for it in range(c.max_iterations):
-        local = _axis_coordinates(pts, centerline, frame)
+        local = _axis_coordinates(pts, centerline, frame, roll)
         new_records = _slice_pass(local, cfg, progress, f"centreline pass {it + 2}")
-        _centres(new_records, _curve_to_world(centerline))
+        _centres(new_records, lambda loc, a=centerline: _local_to_world(loc, a, frame, roll))
         try:
             new = _fit(new_records, cfg, {"pass": it + 2, "axis": "curve"})
         except NotATunnelError:
@@ -409,5 +481,5 @@ def extract_centerline(
         s = centerline.project(np.array([r.centre for r in ok])).chainage
         for r, si in zip(ok, s, strict=True):
             r.chainage = float(si)
-    centerline.meta.update({"passes": passes, "shifts_m": shifts})
-    return CenterlineResult(centerline, records, frame, passes, axis, cfg)
+    centerline.meta.update({"passes": passes, "shifts_m": shifts, "roll_deg": np.degrees(roll)})
+    return CenterlineResult(centerline, records, frame, passes, axis, cfg, roll)
