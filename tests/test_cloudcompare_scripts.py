@@ -87,6 +87,30 @@ def test_viewer_colours_are_diverging():
     np.testing.assert_allclose(rgb[3], [0.6, 0.6, 0.6])
 
 
+@pytest.mark.parametrize("heading", [0.0, 200.0])
+def test_viewer_unrolls_roof_walls_floor(heading):
+    """A 6 x 3 m box along a heading: roof at 0 deg, left wall +90, right wall -90, floor
+    +-180, with 'left' taken looking towards increasing chainage."""
+    view = _script("view_deformation.py")
+    rng = np.random.default_rng(2)
+    n = 4000
+    s = rng.uniform(0, 30, n)
+    side = rng.integers(0, 4, n)  # 0 roof, 1 left, 2 right, 3 floor
+    u = rng.uniform(-0.8, 0.8, n)
+    y = np.select([side == 1, side == 2], [3.0, -3.0], 3.0 * u)
+    z = np.select([side == 0, side == 3], [1.5, -1.5], 1.5 * u)
+    a = np.deg2rad(heading)
+    xyz = np.stack([s * np.cos(a) - y * np.sin(a), s * np.sin(a) + y * np.cos(a), z], axis=1)
+    along, angle, height = view.unrolled(xyz + [4.0e5, 5.6e6, 300.0], chainage=s)
+    np.testing.assert_allclose(along, s)
+    # a 6 x 3 m box seen from its centre: roof within +-58 deg, walls 68-112, floor >= 122
+    assert np.all(np.abs(angle[side == 0]) < 60)
+    assert np.all((angle[side == 1] > 65) & (angle[side == 1] < 115))
+    assert np.all((angle[side == 2] < -65) & (angle[side == 2] > -115))
+    assert np.all(np.abs(angle[side == 3]) > 120)
+    assert np.allclose(height[side == 0], 1.5, atol=0.01)
+
+
 def test_viewer_writes_png_without_display(tmp_path, monkeypatch):
     view = _script("view_deformation.py")
     ply = tmp_path / "out.ply"
