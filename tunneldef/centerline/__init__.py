@@ -2,7 +2,9 @@
 
 Steps of :func:`extract_centerline`:
 
-1. PCA tunnel frame (:func:`tunneldef.frame.principal_frame`, paper §3.1.1).
+1. PCA tunnel frame (:func:`tunneldef.frame.principal_frame`, paper §3.1.1). If the floor and
+   roof share a cross-slope (an unlevelled scanner, a rigidly tilted epoch) the section's roll is
+   removed first, so floor and roof are level in every slice.
 2. Slices along the frame's x (:mod:`.slicing`).
 3. Per slice: floor and roof from the first and last significant peaks of the height density
    (:mod:`.roof_floor`, paper §3.1.2), walls from the top view of the wall band: linear-kernel
