@@ -471,7 +471,7 @@ def extract_centerline(
         shift = _shift(new, centerline)
         shifts.append(shift)
         axis, records, centerline, passes = centerline, new_records, new, it + 2
-        logger.info("centreline pass %d: curve moved by up to %.4f m", passes, shift)
+        logger.info("centreline pass %d: curve moved by %.4f m (p95)", passes, shift)
         if shift < c.converge_tol:
             break
         if len(shifts) > 1 and shift > 0.7 * shifts[-2]:
