@@ -9,7 +9,12 @@ import pytest
 
 from tunneldef.centerline.curve import Centerline, Projection
 from tunneldef.config import Config
-from tunneldef.deformation import DeformationResult, compute_deformation, danger_zones
+from tunneldef.deformation import (
+    DeformationResult,
+    compute_deformation,
+    danger_zones,
+    section_statistics,
+)
 from tunneldef.deformation.knn import (
     knn_counterparts,
     knn_counterparts_reference,
@@ -359,3 +364,23 @@ def test_other_sections_and_a_curve(kind, radius):
     for z, s in zip(zones, (8.0, 14.0), strict=True):
         assert z["peak"] == pytest.approx(-AMP, abs=0.007)
         assert z["peak_chainage"] == pytest.approx(s, abs=0.5)
+
+
+def test_points_beyond_the_reference_have_no_deformation():
+    """Compared epoch over chainage 2-12 m, reference over 0-10 m: NaN beyond 10 m, and no
+    danger zone made of the missing counterparts."""
+    pair = make_pair(PairSpec(tunnel=TunnelSpec(length=10.0), cmp_shift=2.0, seed=2))
+    t = pair.truth
+    d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, shell=t.label == 0)
+    beyond = t.chainage > 10.05
+    inside = (t.chainage < 9.9) & (t.label == 0)
+    assert beyond.sum() > 1000
+    assert np.isnan(d.deformation[beyond]).all() and np.isnan(d.vertical[beyond]).all()
+    assert np.isfinite(d.deformation[inside]).mean() > 0.999
+    assert np.isfinite(d.fields()["chainage"]).all()
+    danger, zones = danger_zones(d, threshold=0.02)
+    assert zones == [] and danger.sum() == 0
+    rows = section_statistics(d, step=1.0, thickness=0.2)
+    assert [r["chainage"] for r in rows] == [float(k) for k in range(2, 11)]
+    assert all(np.isfinite(r["mean"]) and r["n_valid"] > 100 for r in rows)
+    assert abs(rows[-1]["mean"]) < 0.01  # at the very end: half a section, still unbiased

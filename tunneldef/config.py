@@ -107,6 +107,7 @@ class DeformationConfig:
     k: int = _p(3, "paper §4.3, Table 3: k = 3 nearest neighbours")
     section_step: float = _p(1.0, "paper Table 4: sections 1 m apart")
     section_thickness: float = _p(0.2, "ours: points within +-0.1 m of a section's chainage")
+    max_distance: float = _p(0.5, "ours (knn): no counterpart farther than this (NaN), m")
     normal_radius: float = _p(0.3, "ours (robust): plane-fit radius for the normal, m; ~20x the "
                               "1.5 cm noise sigma, small against a 3 m section (M3C2 rule)")
     cylinder_radius: float = _p(0.2, "ours (robust): cylinder radius along the normal, m; ~50 "

@@ -58,7 +58,8 @@ class DeformationResult:
         Signed deformation: negative = the surface moved into the tunnel (roof sag, wall bulge,
         floor heave), positive = outward. ``knn``: the distance to the KNN-centroid
         counterpart (paper §3.3.1), signed by the section deformation ``horizontal +
-        vertical``.
+        vertical``. NaN where the point has no counterpart: beyond the chainage range the
+        reference covers, or (``knn``) farther than ``max_distance`` from it.
     horizontal, vertical : float64, metres
         Change of |lateral| and |vertical| distance to the centreline between the counterpart
         and the point (paper §3.3.2, Manhattan split); negative = towards the centreline.
@@ -122,6 +123,18 @@ def _shell_mask(xyz: np.ndarray, centerline: Centerline) -> np.ndarray | None:
     except ImportError:
         return None
     return np.asarray(classify_shell(xyz, centerline), dtype=bool)
+
+
+_COVERAGE_SAMPLE = 200_000
+_COVERAGE_QUANTILE = 0.0005
+
+
+def _coverage(ref: np.ndarray, centerline: Centerline, workers: int) -> tuple[float, float]:
+    """Chainage range covered by the reference points (a subsample; outliers ignored)."""
+    step = max(ref.shape[0] // _COVERAGE_SAMPLE, 1)
+    s = centerline.project(ref[::step], workers=workers).chainage
+    lo, hi = np.quantile(s, [_COVERAGE_QUANTILE, 1.0 - _COVERAGE_QUANTILE])
+    return float(lo), float(hi)
 
 
 def _robust_kwargs(cfg: object) -> dict[str, object]:
@@ -189,7 +202,10 @@ def compute_deformation(
     vertical = change of |vertical| (Manhattan split, Fig. 11), (4) deformation = distance to
     the counterpart with the sign of ``horizontal + vertical`` (closer to the centreline than
     the counterpart: negative). ``robust``: the estimator's signed normal distance, split into
-    horizontal and vertical parts along its normal.
+    horizontal and vertical parts along its normal. Both: points beyond the chainage range of
+    the reference points (their 0.05-99.95 % quantiles) get NaN, and so do (``knn``) points
+    farther than ``config.deformation.max_distance`` from their counterpart (holes in the
+    reference).
     """
     config = config or Config()
     dcfg = config.deformation
@@ -253,6 +269,19 @@ def compute_deformation(
             significant = np.asarray(r.significant, dtype=bool)
             lod95 = np.asarray(r.lod95, dtype=np.float64)
             k = None
+        # no counterpart beyond the reference's ends or farther than max_distance (holes)
+        lo, hi = _coverage(ref, centerline, workers)
+        unmatched = (pp.chainage < lo) | (pp.chainage > hi)
+        if method == "knn":
+            unmatched |= dist > dcfg.max_distance
+        if unmatched.any():
+            logger.info(
+                "%d of %d compared points have no reference counterpart (NaN)",
+                int(unmatched.sum()),
+                unmatched.size,
+            )
+            for a in (deformation, horizontal, vertical):
+                a[unmatched] = np.nan
         report(progress, "deformation", 0.9)
         surface = surface_labels(pp.chainage, pp.lateral, pp.vertical, step=dcfg.section_step)
         report(progress, "deformation", 1.0)

@@ -300,10 +300,11 @@ def danger_zones(
     thr = danger_threshold(d, threshold=threshold, rule=rule)
     n = len(d)
     danger = np.zeros(n, dtype=np.uint8)
-    shell_idx = np.flatnonzero(np.asarray(d.shell, bool))
+    judged = judged_values(d)
+    # shell points with a counterpart (NaN: none)
+    shell_idx = np.flatnonzero(np.asarray(d.shell, bool) & np.isfinite(judged))
     if shell_idx.size == 0:
         return danger, []
-    judged = judged_values(d)
     sm = local_median(d.xyz[shell_idx], judged[shell_idx], neighbours=neighbours, workers=workers)
     flagged = shell_idx[np.abs(sm) > thr]
     normal = normal_component(d)

@@ -160,7 +160,8 @@ def section_statistics(
     -------
     list of dict
         One row per section with at least one point, in order of chainage, with keys
-        ``chainage``, ``n_points`` (all points), ``n_shell``, ``mean``, ``std``, ``mean_abs``,
+        ``chainage``, ``n_points`` (all points), ``n_shell``, ``n_valid`` (points the
+        statistics are computed on: shell, with a counterpart), ``mean``, ``std``, ``mean_abs``,
         ``min``, ``max`` (signed deformation, m), ``mean_horizontal``, ``mean_vertical``
         (Manhattan components, m), and ``<surface>_n``, ``<surface>_mean``,
         ``<surface>_std``, ``<surface>_mean_abs`` for roof, left_wall, right_wall, floor, plus
@@ -202,11 +203,13 @@ def section_statistics(
             continue
         shell = d.shell[sel]
         use = sel[shell] if shell_only else sel
+        use = use[np.isfinite(d.deformation[use])]  # points without a counterpart left out
         v = d.deformation[use]
         row: dict[str, Any] = {
             "chainage": round(c, 9),
             "n_points": int(sel.size),
             "n_shell": int(shell.sum()),
+            "n_valid": int(use.size),
         }
         row.update(_stats("", v))
         row["min"] = float(v.min()) if v.size else math.nan
