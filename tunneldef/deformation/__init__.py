@@ -280,8 +280,11 @@ def compute_deformation(
                 int(unmatched.sum()),
                 unmatched.size,
             )
-            for a in (deformation, horizontal, vertical):
-                a[unmatched] = np.nan
+            for a in (deformation, horizontal, vertical, lod95):
+                if a is not None:
+                    a[unmatched] = np.nan
+            if significant is not None:
+                significant[unmatched] = False
         report(progress, "deformation", 0.9)
         surface = surface_labels(pp.chainage, pp.lateral, pp.vertical, step=dcfg.section_step)
         report(progress, "deformation", 1.0)

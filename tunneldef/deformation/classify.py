@@ -1,10 +1,11 @@
 """Danger classification and danger zones along the chainage (paper §4.3, Fig. 22).
 
-The paper marks every point whose deformation exceeds a safety threshold; its threshold is the
-mean deformation of the tunnel (``rule="mean"``). Handheld scans carry a few centimetres of
-noise per point, so the judgement here is made on a local median of the signed deformation
-over the nearest shell points (``neighbours=1`` gives the paper's per-point rule), on shell
-points only, and flagged points are merged into chainage intervals per surface.
+The paper marks every point whose deformation exceeds a safety threshold (Fig. 22); in Fig. 20
+it shows as minor the points within the mean deformation (0.008 m there), which is the
+``rule="mean"`` threshold here. Handheld scans carry a few centimetres of noise per point, so
+the judgement is made on a local median (over the nearest shell points; ``neighbours=1`` gives
+the paper's per-point rule) of :func:`judged_values`, on shell points only, and flagged points
+are merged into chainage intervals per surface with a robust peak (:func:`robust_peak`).
 """
 
 from __future__ import annotations
