@@ -384,3 +384,36 @@ def test_points_beyond_the_reference_have_no_deformation():
     assert [r["chainage"] for r in rows] == [float(k) for k in range(2, 11)]
     assert all(np.isfinite(r["mean"]) and r["n_valid"] > 100 for r in rows)
     assert abs(rows[-1]["mean"]) < 0.01  # at the very end: half a section, still unbiased
+
+
+@pytest.mark.slow
+def test_real_drift_with_an_injected_roof_sag(drift_path):
+    """The real drift scan split into two epochs (every 4th point each), the second with a
+    30 mm roof sag (cos^2 patch 3 m x 1.2 m): one roof zone at the right place and depth."""
+    from tunneldef.frame import principal_frame
+    from tunneldef.io import read
+
+    xyz = read(drift_path).xyz
+    ref, cmp = xyz[0::4], xyz[1::4].copy()
+    # straight axis through the section's centre (the drift is straight)
+    frame = principal_frame(ref)
+    loc = frame.to_local(ref)
+    x0, x1 = np.percentile(loc[:, 0], [0.5, 99.5])
+    yc, zc = (np.percentile(loc[:, 1], [2, 98]).mean(), np.percentile(loc[:, 2], [2, 98]).mean())
+    cl = Centerline.from_polyline(frame.to_world(np.array([[x0, yc, zc], [x1, yc, zc]])))
+    p = cl.project(cmp)
+    s0 = 0.7 * cl.length  # away from the scanner's blind cone in the roof
+    taper = np.cos(np.clip(np.abs(p.chainage - s0) / 1.5, 0, 1) * np.pi / 2) ** 2
+    taper *= np.cos(np.clip(np.abs(p.lateral) / 0.6, 0, 1) * np.pi / 2) ** 2
+    roof = p.vertical > 0.5
+    _, _, up = cl.frame_at(p.chainage)
+    cmp[roof] -= AMP * taper[roof, None] * up[roof]
+    d = compute_deformation(ref, cmp, cl, shell=np.ones(len(cmp), bool))
+    _, zones = danger_zones(d, threshold=0.015)
+    big = [z for z in zones if z["n_points"] > 100]  # a few sparse specks at the far end
+    assert [z["surface"] for z in big] == ["roof"]
+    z = big[0]
+    assert z["peak"] == pytest.approx(-AMP, abs=0.005)
+    assert z["peak_chainage"] == pytest.approx(s0, abs=0.3)
+    still = (taper < 1e-6) & np.isfinite(d.deformation)
+    assert np.abs(d.deformation[still]).mean() < 0.006  # TLS noise: a few millimetres
