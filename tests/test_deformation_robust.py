@@ -163,7 +163,15 @@ def test_vectorised_path_matches_numpy_reference():
     for i in rng.choice(np.flatnonzero(np.isfinite(res.deformation)), 12, replace=False):
         d, nr, nc = _brute_core(ref, cmp_, res, res.core[i], ref_core=ref_core, cmp_core=cmp_core)
         assert (res.n_ref[i], res.n_cmp[i]) == (nr, nc)
-        assert res.deformation[i] == pytest.approx(d, abs=1e-7)
+        assert res.core_deformation[res.core[i]] == pytest.approx(d, abs=1e-7)
+    # each point's value interpolates the cores around it: a convex combination of the cores
+    # within 1.5 core spacings (its own included)
+    tree = cKDTree(res.core_xyz)
+    for i in rng.choice(np.flatnonzero(np.isfinite(res.deformation)), 200, replace=False):
+        near = tree.query_ball_point(cmp_[i], 1.5 * res.meta["core_spacing"]) + [res.core[i]]
+        vals = res.core_deformation[near]
+        vals = vals[np.isfinite(vals)]
+        assert vals.min() - 1e-12 <= res.deformation[i] <= vals.max() + 1e-12
 
 
 def test_every_point_gets_a_value_where_reference_exists():

@@ -6,7 +6,9 @@ shell that did not move it reports about the noise amplitude (the paper's Table 
 This module implements the multiscale model-to-model idea instead (M3C2, Lague et al. 2013):
 
 1. *Core points*: the compared cloud is cut into cubic voxels of ``core_spacing``; each voxel's
-   centroid is a core point, and every compared point takes the value of its voxel's core.
+   centroid is a core point. Every compared point gets a Gaussian-weighted mean (sigma 0.6 core
+   spacings) of the cores around it on its own surface (its voxel's core included), which
+   interpolates the smooth field between the overlapping cylinders.
 2. *Normal*: the reference points around a core (voxel moments of the reference within
    ``normal_radius``) are fitted by a plane (PCA, smallest eigenvector); the normal is oriented
    outward, away from the centreline.
@@ -70,6 +72,9 @@ _CHUNK = 40_000  # cores per neighbourhood query (bounds the flat neighbour arra
 _ROUGH_FACTOR = 1.5  # a cylinder this much rougher than the median one is measured wider
 _INNER_TRIM = 0.2  # innermost fraction of each cylinder dropped (objects lie inward)
 _MAX_VARIATION = 0.02  # a plane with 2 cm noise at a 0.3 m radius: ~0.005; a corner: > 0.05
+_K_SPREAD = 6  # cores interpolated at each point
+_SPREAD_SIGMA = 0.6  # of the core spacing: Gaussian weights of the interpolation
+_SPREAD_PLANE = 0.1  # a core's plane must pass this close to a point to be interpolated, m
 _K_ASSIGN = 16  # candidate planar cores for a point of a corner core
 _MAX_ANGLE_DEG = 35.0  # points of the same surface as a core: normals within this angle
 _COS_MAX_ANGLE = float(np.cos(np.radians(_MAX_ANGLE_DEG)))
@@ -96,9 +101,14 @@ class RobustDeformation:
     sigma_ref, sigma_cmp : ndarray, shape (N,)
         Spread (standard deviation along the normal) of each epoch in the cylinder, metres.
     core : ndarray of intp, shape (N,)
-        Index of the core point each point took its values from.
+        Index of each point's own core (its voxel's, or on a corner the planar core whose
+        plane fits it best): ``normal``, ``n_ref``, ``n_cmp``, ``sigma_ref`` and ``sigma_cmp``
+        are that core's.
     core_xyz : ndarray, shape (C, 3)
         Core points, metres, in the input frame.
+    core_deformation, core_lod95 : ndarray, shape (C,)
+        Deformation and level of detection measured at each core, metres (the per-point
+        values interpolate these).
     core_normal : ndarray, shape (C, 3)
         Outward unit normal of each core.
     core_radius : ndarray, shape (C,)
@@ -119,6 +129,8 @@ class RobustDeformation:
     sigma_cmp: np.ndarray
     core: np.ndarray
     core_xyz: np.ndarray
+    core_deformation: np.ndarray
+    core_lod95: np.ndarray
     core_normal: np.ndarray
     core_radius: np.ndarray
     core_ref_depth: np.ndarray
@@ -529,8 +541,17 @@ def robust_deformation(
         logger.info(
             "%d of %d cores have no reference surface within %.2f m", n_nan, n_cores, max_depth
         )
-    d = d_mean[point_core]
-    lod_p = lod[point_core]
+    d, lod_p = _spread(
+        cmp_ - origin,
+        point_core,
+        cores,
+        normal,
+        variation,
+        d_mean,
+        lod,
+        spacing=core_spacing,
+        workers=workers,
+    )
     inverse = point_core
     with np.errstate(invalid="ignore"):
         significant = np.abs(d) > lod_p
@@ -545,6 +566,8 @@ def robust_deformation(
         sigma_cmp=out["sc"][inverse],
         core=inverse,
         core_xyz=cores + origin,
+        core_deformation=d_mean,
+        core_lod95=lod,
         core_normal=normal,
         core_radius=radius_used,
         core_ref_depth=depth_used,
@@ -620,6 +643,60 @@ def _assign_cores(
     ok = found.any(axis=1)
     point_core[move[ok]] = jj[ok, best[ok]]
     return point_core
+
+
+def _spread(
+    pts: np.ndarray,
+    point_core: np.ndarray,
+    cores: np.ndarray,
+    normals: np.ndarray,
+    variation: np.ndarray,
+    d_core: np.ndarray,
+    lod_core: np.ndarray,
+    *,
+    spacing: float,
+    workers: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Deformation and level of detection of every point from the cores around it.
+
+    Each point takes a Gaussian-weighted mean (sigma ``spacing / 2``) of the valid planar
+    cores among its ``_K_SPREAD`` nearest within ``1.5 * spacing`` that lie on its own core's
+    surface (normals within ``_MAX_ANGLE_DEG``, plane within ``_SPREAD_PLANE`` of the point),
+    its own core always included: neighbouring cylinders overlap, so this interpolates the
+    smooth field between cores rather than copying one core's value over its voxel, and
+    averages some of the noise. The level of detection is the same weighted mean of the
+    cores' levels (conservative: it ignores the averaging).
+    """
+    d = d_core[point_core].copy()
+    lod = lod_core[point_core].copy()
+    valid = np.isfinite(d_core) & (variation <= _MAX_VARIATION)
+    ids = np.flatnonzero(valid)
+    todo = np.flatnonzero(np.isfinite(d))
+    if ids.size < 2 or todo.size == 0:
+        return d, lod
+    k = min(_K_SPREAD, ids.size)
+    dist, j = cKDTree(cores[ids]).query(
+        pts[todo], k=k, distance_upper_bound=1.5 * spacing, workers=workers
+    )
+    dist, j = dist.reshape(len(todo), k), j.reshape(len(todo), k)
+    found = np.isfinite(dist)
+    jj = ids[np.where(found, j, 0)]
+    own = point_core[todo]
+    same = np.einsum("ijk,ik->ij", normals[jj], normals[own]) >= _COS_MAX_ANGLE
+    plane = np.abs(np.einsum("ijk,ijk->ij", pts[todo][:, None, :] - cores[jj], normals[jj]))
+    use = found & same & (plane <= _SPREAD_PLANE) & (jj != own[:, None])
+    w = np.where(
+        use, np.exp(-0.5 * (np.where(found, dist, 0.0) / (_SPREAD_SIGMA * spacing)) ** 2), 0.0
+    )
+    w_own = np.exp(
+        -0.5 * (np.linalg.norm(pts[todo] - cores[own], axis=1) / (_SPREAD_SIGMA * spacing)) ** 2
+    )
+    total = w.sum(axis=1) + w_own
+    d[todo] = (np.einsum("ij,ij->i", w, np.where(use, d_core[jj], 0.0)) + w_own * d[todo]) / total
+    lod[todo] = (
+        np.einsum("ij,ij->i", w, np.where(use, lod_core[jj], 0.0)) + w_own * lod[todo]
+    ) / total
+    return d, lod
 
 
 def _check_mask(mask: np.ndarray, n: int, name: str) -> np.ndarray:
