@@ -1,0 +1,408 @@
+"""Deformation accuracy and speed: the paper's KNN centroid against the robust estimator and peers.
+
+Every method runs on the same registered pairs and is scored against the same truth:
+
+* synthetic pairs (``tunneldef.synth``, 20 m, equipment + conveyor with a new coal load, 400
+  points/m^2) with noise sigma 0.015 m (the scanner's +-3 cm) and 0.012 m, and a 15 mm (the
+  paper's Table 5 roof deformation) or 30 mm roof sag; registration perfect (the true
+  transform), then a second block with ``tunneldef.registration.register``;
+* the real drift scan (``../shared/data/freiberg_mine_drift_tls.laz``, subsampled), its points
+  split at random into two epochs, a 15 mm roof sag injected into the second.
+
+Methods: ``knn`` (the paper's KNN centroid, k = 3, §3.3.1), ``robust`` (both through
+``tunneldef.deformation.compute_deformation``, shell classification included in the time),
+``cc-c2c`` (CloudCompare's cloud-to-cloud distance, nearest neighbour, unsigned: its values are
+scored as if every change were inward) and ``py4dgeo-m3c2`` (M3C2 on the robust estimator's
+core points, cylinder 0.2 m, normal radius 0.3 m; its normals oriented outward afterwards).
+CloudCompare or py4dgeo are skipped with a message when absent.
+
+Scores (mm unless stated), on points labelled shell by the truth:
+  noise mean / p95 : mean and 95th percentile of |d| on shell that did not move;
+  peak             : median of d within 0.3 m of the sag's centre (truth: the same median of the
+                     true displacement);
+  core mean        : mean of d where the truth is at least half the amplitude (truth likewise);
+  recall@10        : fraction of the sag core (truth >= 80 % of the amplitude) with d < -10 mm;
+  FA@10 %          : fraction of the unchanged shell with |d| > 10 mm;
+  time s           : wall time of the method on the pair.
+A last block times the robust estimator alone on a compared cloud of one million points.
+
+Run: ``python benchmarks/deformation_accuracy.py [--quick] [--no-cc] [--no-m3c2]
+[--speed-points 1000000] [--drift-points 600000]`` (default: about 3-5 minutes on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from tunneldef.centerline.curve import Centerline
+from tunneldef.deformation import compute_deformation
+from tunneldef.deformation.robust import robust_deformation, voxel_cores
+from tunneldef.deformation.shell import classify_shell
+from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
+
+DRIFT = (
+    Path(__file__).resolve().parents[1].parent / "shared" / "data" / "freiberg_mine_drift_tls.laz"
+)
+THRESHOLD = 0.010
+LENGTH, SAG_AT = 20.0, 10.0
+
+
+# --------------------------------------------------------------------------- methods
+
+
+def run_knn(ref, cmp_, line, ctx):
+    return compute_deformation(ref, cmp_, line, method="knn").deformation
+
+
+def run_robust(ref, cmp_, line, ctx):
+    return compute_deformation(ref, cmp_, line, method="robust").deformation
+
+
+def run_c2c(ref, cmp_, line, ctx):
+    exe = shutil.which("CloudCompare")
+    if exe is None:
+        raise RuntimeError("CloudCompare not found")
+    with tempfile.TemporaryDirectory() as tmp:
+        t = Path(tmp)
+        o = ref.mean(axis=0)  # local origin: CloudCompare stores float32 coordinates
+        np.savetxt(t / "cmp.xyz", cmp_ - o, fmt="%.5f")
+        np.savetxt(t / "ref.xyz", ref - o, fmt="%.5f")
+        env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+        cmd = [
+            exe,
+            "-SILENT",
+            "-AUTO_SAVE",
+            "OFF",
+            "-C_EXPORT_FMT",
+            "ASC",
+            "-O",
+            "cmp.xyz",
+            "-O",
+            "ref.xyz",
+            "-C2C_DIST",
+            "-SAVE_CLOUDS",
+            "FILE",
+            "out_cmp.asc out_ref.asc",
+        ]
+        subprocess.run(cmd, cwd=t, env=env, check=True, capture_output=True, timeout=600)
+        out = np.loadtxt(t / "out_cmp.asc")
+    if out.shape[0] != cmp_.shape[0] or not np.allclose(out[:, :3], cmp_ - o, atol=1e-3):
+        raise RuntimeError("CloudCompare changed the point order")
+    return -np.abs(out[:, 3])  # unsigned: scored as inward
+
+
+def run_m3c2(ref, cmp_, line, ctx):
+    import py4dgeo
+
+    logging.getLogger("py4dgeo").setLevel(logging.WARNING)
+    o = ref.mean(axis=0)
+    cores, inverse = voxel_cores(cmp_ - o, 0.2)
+    m = py4dgeo.M3C2(
+        epochs=(py4dgeo.Epoch(ref - o), py4dgeo.Epoch(cmp_ - o)),
+        corepoints=cores,
+        cyl_radius=0.2,
+        normal_radii=[0.3],
+        max_distance=0.3,
+    )
+    dist, _ = m.run()
+    normals = m.directions()
+    proj = line.project(cores + o)
+    _, lat, ver = line.frame_at(proj.chainage)
+    outward = proj.lateral[:, None] * lat + proj.vertical[:, None] * ver
+    flip = np.einsum("ij,ij->i", normals, outward) < 0
+    dist = np.where(flip, -dist, dist)
+    return dist[inverse]
+
+
+METHODS = {"knn": run_knn, "robust": run_robust, "cc-c2c": run_c2c, "py4dgeo-m3c2": run_m3c2}
+
+
+# --------------------------------------------------------------------------- scoring
+
+
+def score(d, truth, shell, unchanged, xyz, amp):
+    """Scores of one method on one pair (see the module docstring)."""
+    d = np.asarray(d, dtype=np.float64)
+    du = np.abs(d[unchanged])
+    ok = np.isfinite(du)
+    centre = np.argmin(np.where(shell, truth, np.inf))
+    disc = shell & (np.linalg.norm(xyz - xyz[centre], axis=1) < 0.3)
+    half = shell & (truth <= -0.5 * amp)
+    core = shell & (truth <= -0.8 * amp)
+    with np.errstate(invalid="ignore"):
+        return {
+            "mean": 1e3 * np.mean(du[ok]),
+            "p95": 1e3 * np.percentile(du[ok], 95),
+            "peak": 1e3 * np.nanmedian(d[disc]),
+            "peak_t": 1e3 * np.median(truth[disc]),
+            "core": 1e3 * np.nanmean(d[half]),
+            "core_t": 1e3 * np.mean(truth[half]),
+            "recall": float(np.mean(d[core] < -THRESHOLD)),
+            "fa": 100.0 * float(np.mean(du[ok] > THRESHOLD)),
+            "nan": 100.0 * float(np.mean(~ok)),
+        }
+
+
+HEADER = (
+    f"{'pair':<28} {'method':<13} {'mean':>6} {'p95':>6} {'peak/truth':>13} "
+    f"{'core/truth':>13} {'rec@10':>6} {'FA@10%':>7} {'NaN%':>5} {'time s':>7}"
+)
+
+
+def row(pair_name, method, s, seconds):
+    return (
+        f"{pair_name:<28} {method:<13} {s['mean']:6.1f} {s['p95']:6.1f} "
+        f"{s['peak']:6.1f}/{s['peak_t']:<6.1f} {s['core']:6.1f}/{s['core_t']:<6.1f} "
+        f"{s['recall']:6.2f} {s['fa']:7.2f} {s['nan']:5.1f} {seconds:7.1f}"
+    )
+
+
+def run_methods(name, ref, cmp_, line, truth, shell, unchanged, amp, methods, *, show=True):
+    """Scores and times of every method on one pair ({method: (scores, seconds)})."""
+    out = {}
+    for mname in methods:
+        t0 = time.perf_counter()
+        try:
+            d = METHODS[mname](ref, cmp_, line, None)
+        except Exception as exc:  # a peer that is missing or fails is reported, not fatal
+            print(f"{name:<28} {mname:<13} skipped: {type(exc).__name__}: {exc}"[:150])
+            continue
+        seconds = time.perf_counter() - t0
+        out[mname] = (score(d, truth, shell, unchanged, cmp_, amp), seconds)
+        if show:
+            print(row(name, mname, *out[mname]), flush=True)
+    return out
+
+
+def print_mean(name, runs, methods):
+    """One row per method: each score averaged over the runs (seeds)."""
+    for mname in methods:
+        got = [r[mname] for r in runs if mname in r]
+        if not got:
+            continue
+        s = {k: float(np.mean([g[0][k] for g in got])) for k in got[0][0]}
+        print(row(name, mname, s, float(np.mean([g[1] for g in got]))), flush=True)
+    if runs and "robust" in runs[0]:
+        worst = max(abs(r["robust"][0]["peak"] - r["robust"][0]["peak_t"]) for r in runs)
+        low = min(r["robust"][0]["recall"] for r in runs)
+        print(
+            f"{'':<28} robust over {len(runs)} seeds: worst peak error {worst:.1f} mm, "
+            f"lowest recall@10 {low:.2f}"
+        )
+
+
+# --------------------------------------------------------------------------- pairs
+
+
+def synth_pair(noise, amp, seed):
+    return make_pair(
+        PairSpec(
+            tunnel=TunnelSpec(length=LENGTH, noise_sigma=noise, equipment=True, conveyor=True),
+            deformations=(DeformationSpec(kind="roof_sag", chainage=SAG_AT, amplitude=amp),),
+            cmp_shift=1.0,
+            seed=seed,
+        )
+    )
+
+
+def synth_masks(pair):
+    tr = pair.truth
+    shell = tr.label == 0
+    inside = (tr.chainage > 0.5) & (tr.chainage < LENGTH - 0.5)  # where both epochs exist
+    return shell & inside, shell & inside & (tr.displacement == 0.0)
+
+
+def synth_block(methods, quick, seeds):
+    cases = [(0.015, 0.015), (0.015, 0.030), (0.012, 0.015), (0.012, 0.030)]
+    if quick:
+        cases = cases[:1]
+    print(f"\nSynthetic pairs, perfect registration (truth transform); mean of seeds {seeds}")
+    print(HEADER)
+    for noise, amp in cases:
+        runs = []
+        name = f"synth s={noise * 1e3:.0f}mm sag={amp * 1e3:.0f}mm"
+        for seed in seeds:
+            pair = synth_pair(noise, amp, seed)
+            tr = pair.truth
+            shell, unchanged = synth_masks(pair)
+            runs.append(
+                run_methods(
+                    name,
+                    pair.ref.xyz,
+                    tr.cmp_xyz_in_ref,
+                    tr.centerline,
+                    tr.displacement,
+                    shell,
+                    unchanged,
+                    amp,
+                    methods,
+                    show=False,
+                )
+            )
+        print_mean(name, runs, methods)
+
+
+def registration_block(methods, seed):
+    try:
+        from tunneldef.registration import register
+    except ImportError as exc:
+        print(f"\n(registration block skipped: {exc})")
+        return
+    print("\nSynthetic pair s=15mm sag=15mm, registered by tunneldef.registration.register")
+    pair = synth_pair(0.015, 0.015, seed)
+    tr = pair.truth
+    t0 = time.perf_counter()
+    try:
+        reg = register(pair.ref.xyz, pair.cmp.xyz)
+    except Exception as exc:
+        print(f"(registration failed: {type(exc).__name__}: {exc})")
+        return
+    t = reg.transform
+    cmp_reg = pair.cmp.xyz @ t[:3, :3].T + t[:3, 3]
+    err = np.linalg.norm(cmp_reg - tr.cmp_xyz_in_ref, axis=1)
+    print(
+        f"registration ({reg.method}): {time.perf_counter() - t0:.1f} s; point error vs truth "
+        f"mean {1e3 * err.mean():.1f} mm, max {1e3 * err.max():.1f} mm"
+    )
+    print(HEADER)
+    shell, unchanged = synth_masks(pair)
+    run_methods(
+        "synth s=15mm sag=15mm reg",
+        pair.ref.xyz,
+        cmp_reg,
+        tr.centerline,
+        tr.displacement,
+        shell,
+        unchanged,
+        0.015,
+        methods,
+    )
+
+
+def _taper(x, full):
+    return np.where(np.abs(x) < full / 2, 0.5 * (1.0 + np.cos(2.0 * np.pi * x / full)), 0.0)
+
+
+def drift_block(methods, n_points, seed, amp=0.015):
+    if not DRIFT.is_file():
+        print(f"\n(real drift block skipped: {DRIFT} not found)")
+        return
+    from tunneldef.io import read
+
+    rng = np.random.default_rng(seed)
+    xyz = read(DRIFT).xyz
+    xyz = xyz[rng.choice(len(xyz), min(n_points, len(xyz)), replace=False)]
+    half = rng.random(len(xyz)) < 0.5
+    ref, cmp_ = xyz[half], xyz[~half].copy()
+    try:
+        from tunneldef.centerline import extract_centerline
+
+        line = extract_centerline(ref).centerline
+        how = "extract_centerline"
+    except Exception as exc:  # fall back to a straight axis along the drift
+        lo, hi = np.percentile(ref, [1, 99], axis=0)
+        mid = 0.5 * (lo + hi)
+        line = Centerline.from_polyline(
+            np.array([[mid[0], lo[1], mid[2]], [mid[0], hi[1], mid[2]]])
+        )
+        how = f"straight axis ({type(exc).__name__})"
+    p = line.project(cmp_)
+    top = np.percentile(p.vertical, 99)
+    roof = (p.vertical > 0.6 * top) & (np.abs(p.lateral) < 0.7)
+    # a 15 mm sag, 2 m along the drift and 1 m across, where the roof is seen (3 m from the
+    # scanner: no blind cone)
+    s0 = float(line.project(np.array([[0.0, 3.0, 0.0]])).chainage[0])
+    truth = np.where(roof, -amp * _taper(p.chainage - s0, 2.0) * _taper(p.lateral, 1.0), 0.0)
+    cmp_[:, 2] += truth  # the roof moves down, into the drift
+    shell_c = classify_shell(cmp_, line)
+    inside = (p.chainage > 0.5) & (p.chainage < line.length - 0.5)
+    shell = shell_c & inside
+    unchanged = shell & (truth == 0.0)
+    print(
+        f"\nReal drift ({DRIFT.name}): {len(ref)} + {len(cmp_)} points (random halves), "
+        f"centreline by {how}, {amp * 1e3:.0f} mm roof sag injected at chainage {s0:.1f} m "
+        f"({int((truth < 0).sum())} points moved); shell = classify_shell; perfect registration"
+    )
+    print(HEADER)
+    run_methods("drift halves sag=15mm", ref, cmp_, line, truth, shell, unchanged, amp, methods)
+
+
+def speed_block(n_points, seed):
+    per_metre = 8_300.0  # points per metre of a 5.8 x 2.86 m section at 400 points/m^2
+    length = max(10.0, n_points / per_metre)
+    pair = make_pair(
+        PairSpec(
+            tunnel=TunnelSpec(length=length, equipment=True, conveyor=True),
+            deformations=(DeformationSpec(kind="roof_sag", chainage=length / 2, amplitude=0.015),),
+            cmp_shift=0.0,
+            seed=seed,
+        )
+    )
+    tr = pair.truth
+    ref, cmp_ = pair.ref.xyz, tr.cmp_xyz_in_ref
+    print(
+        f"\nSpeed: {len(cmp_)} compared vs {len(ref)} reference points ({length:.0f} m), "
+        f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}"
+    )
+    for label, fn in (
+        ("robust_deformation", lambda: robust_deformation(ref, cmp_, tr.centerline)),
+        ("classify_shell (compared)", lambda: classify_shell(cmp_, tr.centerline)),
+        (
+            "compute_deformation robust",
+            lambda: compute_deformation(ref, cmp_, tr.centerline, method="robust"),
+        ),
+        (
+            "compute_deformation knn",
+            lambda: compute_deformation(ref, cmp_, tr.centerline, method="knn"),
+        ),
+    ):
+        w0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        print(
+            f"  {label:<28} wall {time.perf_counter() - w0:6.1f} s   "
+            f"cpu {time.process_time() - c0:6.1f} s",
+            flush=True,
+        )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one synthetic pair, no speed block")
+    ap.add_argument("--no-cc", action="store_true", help="skip CloudCompare C2C")
+    ap.add_argument("--no-m3c2", action="store_true", help="skip py4dgeo M3C2")
+    ap.add_argument("--seed", type=int, default=0, help="first seed")
+    ap.add_argument("--seeds", type=int, default=3, help="synthetic pairs per case")
+    ap.add_argument("--speed-points", type=int, default=1_000_000)
+    ap.add_argument("--drift-points", type=int, default=600_000)
+    args = ap.parse_args()
+    methods = ["knn", "robust"]
+    if not args.no_cc:
+        methods.append("cc-c2c")
+    if not args.no_m3c2:
+        try:
+            import py4dgeo  # noqa: F401
+
+            methods.append("py4dgeo-m3c2")
+        except ImportError:
+            print("py4dgeo not installed (pip install py4dgeo): M3C2 rows skipped")
+    t0 = time.perf_counter()
+    seeds = list(range(args.seed, args.seed + (1 if args.quick else args.seeds)))
+    synth_block(methods, args.quick, seeds)
+    registration_block(methods, args.seed)
+    drift_block(methods, args.drift_points, args.seed)
+    if not args.quick and args.speed_points > 0:
+        speed_block(args.speed_points, args.seed)
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
