@@ -27,7 +27,7 @@ from ..config import Config
 from ..errors import ConfigError, InvalidCloudError
 from ..progress import ProgressCallback, report, timed_stage
 from .classify import danger_threshold, danger_zones, normal_component, robust_peak
-from .knn import knn_counterparts, manhattan_split
+from .knn import counterpart_projection, knn_counterparts, manhattan_split
 from .sections import SURFACE_NAMES, section_statistics, surface_labels, write_sections_csv
 
 __all__ = [
@@ -241,7 +241,7 @@ def compute_deformation(
             counterpart, dist = knn_counterparts(
                 ref, cmp, k=k, workers=workers, progress=sub(0.1, 0.85)
             )
-            pc = centerline.project(counterpart, workers=workers)
+            pc = counterpart_projection(centerline, cmp, pp, counterpart)
             horizontal, vertical = manhattan_split(pp, pc)
             sign = np.where(horizontal + vertical < 0.0, -1.0, 1.0)
             deformation = sign * dist
