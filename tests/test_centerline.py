@@ -170,6 +170,30 @@ def test_arched_section() -> None:
     assert np.percentile(err, 95) <= 0.03
 
 
+def test_trapezoid_leaning_walls_measured_at_mid_band() -> None:
+    """Inclined walls (wider at the floor) behind pipes and a conveyor: seen from above each
+    wall is a strip; its lean is measured and the wall taken at the middle of the wall band."""
+    spec = TunnelSpec(
+        length=20.0,
+        section=SectionSpec(kind="trapezoid"),
+        density=150.0,
+        equipment=True,
+        conveyor=True,
+    )
+    cloud, truth = make_tunnel(spec, seed=RNG_SEED)
+    res = extract_centerline(cloud.xyz)
+    lean = (spec.section.width - 0.75 * spec.section.width) / 2 / spec.section.height
+    assert res.leans[0] == pytest.approx(-lean, abs=0.04)
+    assert res.leans[1] == pytest.approx(lean, abs=0.04)
+    err = centre_errors(res.centerline, truth.centerline)
+    assert np.percentile(err, 95) <= 0.02
+    c = Config().centerline
+    mid_band = 0.5 * (c.wall_band_low + c.wall_band_high) * spec.section.height
+    expected = spec.section.width - 2 * lean * mid_band
+    width = np.array([r.width for r in res.accepted])
+    assert np.percentile(np.abs(width - expected), 95) <= 0.03
+
+
 def test_rolled_scan_is_levelled_before_the_lines() -> None:
     """A scan rolled 3 deg about the tunnel axis (an unlevelled scanner): floor and roof
     cross-slopes give the roll, the section is levelled, centres and sizes stay exact."""

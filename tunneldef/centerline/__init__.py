@@ -37,7 +37,7 @@ from .curve import Centerline, Projection
 from .fit import fit_centerline
 from .roof_floor import RoofFloor, roof_floor_lines
 from .slicing import slice_along_axis
-from .walls import WallLines, wall_lines
+from .walls import WallLines, wall_lean, wall_lines
 
 __all__ = [
     "Centerline",
@@ -145,6 +145,9 @@ class CenterlineResult:
         Roll of the section about the axis (radians, positive = the floor rises to the left),
         estimated from the floor and roof cross-slopes and removed before the lines are found;
         0 for a levelled scan.
+    leans : (float, float)
+        Lean dv/dz of the left and right walls (0 = vertical), measured once per cloud; leaning
+        walls are measured at the middle of the wall band.
     """
 
     centerline: Centerline
@@ -154,6 +157,7 @@ class CenterlineResult:
     axis: Centerline | None = None
     config: Config = field(default_factory=Config)
     roll: float = 0.0
+    leans: tuple[float, float] = (0.0, 0.0)
 
     def table(self) -> list[dict[str, Any]]:
         """One dict per slice (see :meth:`SliceRecord.row`), for CSV."""
@@ -247,7 +251,11 @@ def _estimate_roll(local: np.ndarray, cfg: Config) -> float:
 
 
 def analyse_slice(
-    local: np.ndarray, station: float, *, config: Config | None = None
+    local: np.ndarray,
+    station: float,
+    *,
+    config: Config | None = None,
+    leans: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[RoofFloor, WallLines | None, np.ndarray]:
     """Roof, floor and wall lines of one slice.
 
@@ -257,6 +265,8 @@ def analyse_slice(
         The slice's points as (along, lateral, vertical), metres.
     station : float
         Along-axis position of the slice, metres.
+    leans : (float, float)
+        Lean of the left and right wall (dv/dw, 0 = vertical), see :func:`_estimate_leans`.
 
     Returns
     -------
@@ -290,12 +300,71 @@ def analyse_slice(
         max_angle_deg=c.max_wall_angle_deg,
         peak_ratio=c.hough_peak_ratio,
         refine_bandwidth=c.refine_bandwidth,
+        w=local[band, 2],
+        w_ref=rf.floor + 0.5 * (c.wall_band_low + c.wall_band_high) * h,
+        leans=leans,
     )
     return rf, walls, band
 
 
+def _estimate_leans(local: np.ndarray, cfg: Config, min_lean: float = 0.05) -> tuple[float, float]:
+    """Lean dv/dw of the left and right walls, common to the whole tunnel.
+
+    Every metre, the wall band of a slice is split at the middle of its lateral extent and each
+    side's lean is measured (:func:`~tunneldef.centerline.walls.wall_lean`); the median over
+    the slices is the wall's lean (a design section is the same along the tunnel; the median
+    ignores slices where pipes or a conveyor hide the wall). The leans are used only when both
+    walls lean by at least ``min_lean`` (2.9 deg), steadily along the tunnel (robust spread at
+    most half the lean) and symmetrically (the section narrows or widens upwards on both
+    sides); anything else (vertical walls, an arch springing inside the wall band, rough rock)
+    is measured as vertical walls, as in the paper.
+    """
+    c = cfg.centerline
+    leans: list[tuple[float, float]] = []
+    for sl in slice_along_axis(
+        local[:, 0], step=max(cfg.slicing.step, 1.0), thickness=cfg.slicing.thickness
+    ):
+        if len(sl.index) < cfg.slicing.min_points:
+            continue
+        p = local[sl.index]
+        rf = roof_floor_lines(p[:, 2], bandwidth=c.kde_bandwidth, min_share=c.min_peak_share)
+        if not rf.ok:
+            continue
+        h = rf.roof - rf.floor
+        q = p[
+            (p[:, 2] > rf.floor + c.wall_band_low * h) & (p[:, 2] < rf.floor + c.wall_band_high * h)
+        ]
+        if len(q) < 40:
+            continue
+        mid = float(np.mean(np.percentile(q[:, 1], [2, 98])))
+        w_ref = rf.floor + 0.5 * (c.wall_band_low + c.wall_band_high) * h
+        pair = []
+        for side in (1.0, -1.0):
+            m = side * (q[:, 1] - mid) > 0
+            pair.append(wall_lean(q[m, 1], q[m, 2] - w_ref, side=side) if m.sum() >= 20 else np.nan)
+        leans.append((pair[0], pair[1]))
+    if len(leans) < 3:
+        return 0.0, 0.0
+    cols = [col[np.isfinite(col)] for col in np.array(leans).T]
+    med = np.array([np.median(col) if col.size >= 3 else np.nan for col in cols])
+    spread = np.array(
+        [
+            1.4826 * np.median(np.abs(col - m)) if col.size >= 3 else np.nan
+            for col, m in zip(cols, med, strict=True)
+        ]
+    )
+    steady = np.isfinite(med) & (np.abs(med) >= min_lean) & (spread <= 0.5 * np.abs(med))
+    if steady.all() and med[0] * med[1] < 0:
+        return float(med[0]), float(med[1])
+    return 0.0, 0.0
+
+
 def _slice_pass(
-    local: np.ndarray, cfg: Config, progress: ProgressCallback | None, stage: str
+    local: np.ndarray,
+    cfg: Config,
+    progress: ProgressCallback | None,
+    stage: str,
+    leans: tuple[float, float] = (0.0, 0.0),
 ) -> list[SliceRecord]:
     slices = slice_along_axis(local[:, 0], step=cfg.slicing.step, thickness=cfg.slicing.thickness)
     records = []
@@ -306,7 +375,7 @@ def _slice_pass(
         if rec.n_points < cfg.slicing.min_points:
             rec.reason = f"too few points ({rec.n_points} < {cfg.slicing.min_points})"
             continue
-        rf, walls, _ = analyse_slice(local[sl.index], sl.station, config=cfg)
+        rf, walls, _ = analyse_slice(local[sl.index], sl.station, config=cfg, leans=leans)
         rec.floor, rec.roof = rf.floor, rf.roof
         rec.methods = {"floor": rf.method, "roof": rf.method, "left": "", "right": ""}
         if walls is None:
@@ -454,14 +523,17 @@ def extract_centerline(
     if roll:
         logger.info("centreline: section rolled by %.2f deg about the axis", np.degrees(roll))
     local = _axis_coordinates(pts, None, frame, roll)
-    records = _slice_pass(local, cfg, progress, "centreline pass 1")
+    leans = _estimate_leans(local, cfg)
+    if any(leans):
+        logger.info("centreline: walls lean by %.3f / %.3f (dv/dz)", *leans)
+    records = _slice_pass(local, cfg, progress, "centreline pass 1", leans)
     _centres(records, lambda loc: _local_to_world(loc, None, frame, roll))
     centerline = _fit(records, cfg, {"pass": 1, "axis": "pca"})
     axis: Centerline | None = None
     passes, shifts = 1, []
     for it in range(c.max_iterations):
         local = _axis_coordinates(pts, centerline, frame, roll)
-        new_records = _slice_pass(local, cfg, progress, f"centreline pass {it + 2}")
+        new_records = _slice_pass(local, cfg, progress, f"centreline pass {it + 2}", leans)
         _centres(new_records, lambda loc, a=centerline: _local_to_world(loc, a, frame, roll))
         try:
             new = _fit(new_records, cfg, {"pass": it + 2, "axis": "curve"})
@@ -483,5 +555,12 @@ def extract_centerline(
         s = centerline.project(np.array([r.centre for r in ok])).chainage
         for r, si in zip(ok, s, strict=True):
             r.chainage = float(si)
-    centerline.meta.update({"passes": passes, "shifts_m": shifts, "roll_deg": np.degrees(roll)})
-    return CenterlineResult(centerline, records, frame, passes, axis, cfg, roll)
+    centerline.meta.update(
+        {
+            "passes": passes,
+            "shifts_m": shifts,
+            "roll_deg": float(np.degrees(roll)),
+            "wall_leans": list(leans),
+        }
+    )
+    return CenterlineResult(centerline, records, frame, passes, axis, cfg, roll, leans)

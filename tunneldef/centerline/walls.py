@@ -28,12 +28,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import convolve1d, gaussian_filter, sobel, uniform_filter1d
+from scipy.stats import theilslopes
 from skimage.feature import canny
 from skimage.transform import hough_line, hough_line_peaks
 
 from .roof_floor import kernel_density_1d, refine_peak
 
-__all__ = ["WallLines", "wall_lines", "linear_kernel_density"]
+__all__ = ["WallLines", "wall_lines", "wall_lean", "linear_kernel_density"]
 
 HOUGH = "hough"
 FALLBACK = "fallback"
@@ -142,6 +143,34 @@ def _hough_lines(edges: np.ndarray, *, max_slope_px: float, peak_ratio: float) -
     return out[np.argsort(out[:, 0])]
 
 
+def wall_lean(v: np.ndarray, dz: np.ndarray, *, side: float, bin_height: float = 0.15) -> float:
+    """Lean dv/dz of one wall from the points of its side of the wall band.
+
+    Seen from above, a wall that leans (a trapezoidal section) is a strip, not a line, and which
+    part of the strip is seen depends on what hides it (pipes, a conveyor). Per height bin the
+    98th percentile of ``side * v`` traces the wall's outer envelope (equipment hangs inside the
+    walls and hides most, not all, of the wall behind it); a Theil-Sen line through the bins
+    gives the lean (NaN with fewer than four bins).
+
+    Parameters
+    ----------
+    v, dz : ndarray, shape (N,)
+        Lateral offsets and heights (relative to any reference) of one side's points, metres.
+    side : float
+        +1 for the left wall (+v), -1 for the right wall.
+    """
+    k = np.floor((dz - dz.min()) / bin_height).astype(np.intp)
+    zs, env = [], []
+    for b in np.unique(k):
+        m = k == b
+        if m.sum() >= 5:
+            zs.append(float(np.mean(dz[m])))
+            env.append(float(np.percentile(side * v[m], 98)))
+    if len(zs) < 4:
+        return np.nan
+    return side * float(theilslopes(env, zs).slope)
+
+
 def _fallback(v: np.ndarray, *, bandwidth: float, min_share: float) -> tuple[float, float] | None:
     grid, dens = kernel_density_1d(v, bandwidth=bandwidth)
     from scipy.signal import find_peaks
@@ -168,6 +197,9 @@ def wall_lines(
     peak_ratio: float = 0.3,
     refine_bandwidth: float = 0.02,
     min_width: float = 0.5,
+    w: np.ndarray | None = None,
+    w_ref: float = 0.0,
+    leans: tuple[float, float] = (0.0, 0.0),
 ) -> WallLines:
     """Left and right wall lines of one slice from the top view of its wall band.
 
@@ -193,6 +225,14 @@ def wall_lines(
         Narrow kernel that refines each line to the mode of its points' lateral offsets, m.
     min_width : float
         Two lines closer than this are one wall seen twice (the other wall is missing), m.
+    w : ndarray, shape (N,), optional
+        Vertical coordinates of the points, metres (needed for leaning walls).
+    w_ref : float
+        Height at which leaning walls are measured, metres.
+    leans : (float, float)
+        Lean dv/dw of the left and right wall (:func:`wall_lean`; 0 = vertical). Seen from
+        above a leaning wall is a strip whose visible part depends on what hides it, so its
+        points are moved to ``w_ref`` along the lean before the line is refined.
 
     Returns
     -------
@@ -242,8 +282,16 @@ def wall_lines(
     window = kernel_half_width + 3 * cell
     if len(lines) >= 2:
         out = []
-        for v0, slope in (lines[0], lines[-1]):
+        mid = (lines[0, 0] + lines[-1, 0]) / 2
+        for (v0, slope), side, lean in ((lines[0], 1.0, leans[0]), (lines[-1], -1.0, leans[1])):
             r = v - slope * (u - station)
+            if w is not None and lean:
+                # a leaning wall is measured at the reference height: its points are moved
+                # there along the lean, and the search starts at their outer envelope
+                r = r - lean * (w - w_ref)
+                on_side = side * (r - mid) > 0
+                if on_side.sum() >= 10:
+                    v0 = side * float(np.percentile(side * r[on_side], 90))
             out.append((refine_peak(r, v0, window=window, bandwidth=refine_bandwidth), slope))
         (left, ls), (right, rs) = out
         if left - right >= min_width:
