@@ -79,6 +79,8 @@ class CenterlineConfig:
     converge_tol: float = _p(0.01, "ours: stop re-slicing when the curve moves less (p95), "
                                    "m; about twice the noise of the slice centres")
     min_slices: int = _p(5, "ours: fewer accepted slices and there is no centreline")
+    max_points: int = _p(2_000_000, "ours: larger clouds are thinned at random (seeded) before "
+                                    "slicing; the lines need ~1e4 points per slice, not 1e5")
     vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)")
 
 

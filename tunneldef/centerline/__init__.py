@@ -518,6 +518,10 @@ def extract_centerline(
             f"the cloud has {len(pts)} points; a centreline needs at least {need} "
             f"({c.min_slices} slices x {cfg.slicing.min_points} points); is the file complete?"
         )
+    if len(pts) > c.max_points > 0:
+        keep = np.random.default_rng(0).random(len(pts)) < c.max_points / len(pts)
+        logger.info("centreline: %d of %d points used", int(keep.sum()), len(pts))
+        pts = pts[keep]
     frame = principal_frame(pts, vertical=c.vertical)
     roll = _estimate_roll(frame.to_local(pts), cfg)
     if roll:
