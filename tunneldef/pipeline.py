@@ -43,7 +43,8 @@ def _stage(progress: ProgressCallback | None, name: str) -> ProgressCallback | N
         return None
 
     def cb(step: str, fraction: float) -> None:
-        progress(f"{name}: {step}" if step else name, fraction)
+        same = not step or step.lower() == name.split()[-1].lower()
+        progress(name if same else f"{name}: {step}", fraction)
 
     return cb
 
