@@ -76,7 +76,9 @@ def test_centerline_registration_meets_targets(radius, yaw):
     # straight and curved pairs, 3 cm roof sag, shifted stretch, two very different headings
     pair = _pair(radius=radius, yaw=yaw, density=80.0)
     ref_cl, cmp_cl = _truth_centerlines(pair)
-    reg = register(pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl)
+    reg = register(
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, config=NO_REFINE
+    )
     rms, rot = _errors(reg, pair)
     assert rms <= 0.01, rms
     assert rot <= 0.05, rot
@@ -93,7 +95,14 @@ def test_registration_through_real_centreline_extraction():
     rms, rot = _errors(reg, pair)
     assert rms <= 0.01, rms
     assert rot <= 0.05, rot
-    assert set(reg.stages) == {"coarse", "cross_section", "longitudinal", "plan", "refine"}
+    assert set(reg.stages) == {
+        "coarse",
+        "cross_section",
+        "longitudinal",
+        "plan",
+        "common_stretch",
+        "refine",
+    }
 
 
 def test_pca_direction_flip_resolved():
@@ -248,7 +257,13 @@ def test_fitness_and_to_dict():
     out = json.loads(json.dumps(reg.to_dict()))
     assert np.allclose(out["transform"], reg.transform)
     assert out["method"] == "centerline" and len(out["slice_fitness"]) == 5
-    assert set(out["stages"]) == {"coarse", "cross_section", "longitudinal", "plan"}
+    assert set(out["stages"]) == {
+        "coarse",
+        "cross_section",
+        "longitudinal",
+        "plan",
+        "common_stretch",
+    }
     # per-slice fitness against a direct computation on the registered points
     moved = apply_transform(reg.transform, pair.cmp.xyz)
     direct = slice_fitness(

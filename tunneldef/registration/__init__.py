@@ -24,8 +24,9 @@ from ..errors import NotATunnelError, RegistrationError
 from ..frame import principal_frame
 from ..progress import ProgressCallback, report
 from .baselines import BASELINES
-from .centerline import fine_align, normals, refine_stable
+from .centerline import axial_correction, fine_align, normals
 from .metrics import apply_transform, fitness, overlap_fraction, slice_fitness
+from .refine import refine_stable
 
 __all__ = ["register", "Registration", "METHODS"]
 
@@ -282,13 +283,57 @@ def register(
     for name, m in stages.items():
         world_stages[name] = f_ref_inv @ m @ coarse
 
-    if method == "centerline" and rc.refine:
+    if method == "centerline":
+        # second pass over the common stretch only, from where the first pass left off
+        assert ref_cl is not None and cmp_cl is not None and cmp_n0 is not None
         t0 = time.perf_counter()
         cmp_l = apply_transform(local @ coarse, cmp_s)
-        corr = refine_stable(ref_l, cmp_l, ref_cl, voxel=rc.voxel)
-        local = corr @ local
+        s = ref_cl.project(cmp_l[:: max(1, len(cmp_l) // 20000)]).chainage
+        common = (
+            max(0.0, float(np.percentile(s, 1))),
+            min(ref_cl.length, float(np.percentile(s, 99))),
+        )
+        if common[1] - common[0] > 1.0:
+            fine = fine_align(
+                ref_l,
+                cmp_l,
+                ref_cl,
+                cmp_cl.transformed(local @ coarse),
+                floor_distance=rc.floor_ransac_distance,
+                angle_step_deg=rc.plan_angle_step_deg,
+                axial_search=1.0,
+                ref_normals=ref_n,
+                cmp_normals=cmp_n0 @ (local @ coarse)[:3, :3].T,
+                common=common,
+            )
+            local = fine.transform @ local
+            world_stages["common_stretch"] = f_ref_inv @ local @ coarse
+            if info.get("axial_uncertainty", np.inf) < 1.0:
+                info["axial_uncertainty"] = fine.axial_uncertainty
+        timings["common_stretch"] = time.perf_counter() - t0
+
+    if method == "centerline" and rc.refine:
+        assert ref_cl is not None and cmp_n0 is not None
+        t0 = time.perf_counter()
+        cmp_l = apply_transform(local @ coarse, cmp_s)
+        local = refine_stable(ref_l, cmp_l, ref_cl, voxel=rc.voxel) @ local
+        # the shell ICP holds the axis position loosely: put it back where the features say
+        if np.isfinite(info.get("axial_uncertainty", np.inf)):
+            cmp_l = apply_transform(local @ coarse, cmp_s)
+            corr, shift = axial_correction(
+                ref_l, ref_n, cmp_l, cmp_n0 @ (local @ coarse)[:3, :3].T, ref_cl
+            )
+            if shift.informative and info["axial_uncertainty"] < 1.0:
+                local = corr @ local
+                info["axial_uncertainty"] = shift.uncertainty
         world_stages["refine"] = f_ref_inv @ local @ coarse
         timings["refine"] = time.perf_counter() - t0
+    if method == "centerline" and info.get("axial_uncertainty", 0.0) > 1.0:
+        logger.warning(
+            "the position along the axis is not determined (the overlap has no feature along "
+            "the tunnel; +-%.1f m)",
+            info["axial_uncertainty"],
+        )
     report(progress, "registration", 0.9)
 
     transform = f_ref_inv @ local @ coarse

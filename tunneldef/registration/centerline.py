@@ -15,11 +15,12 @@ reference centroid (survey coordinates never enter the numerics):
    centrelines' xoy projections (small-angle steps), the shift along the axis from a
    cross-correlation (eq. 12, generalised in :mod:`.axial`), and the mean lateral offset; on a
    curved tunnel the shift slides the compared centreline along the reference one;
-5. optional refinement: robust point-to-plane ICP restricted to the stable shell.
+5. optional refinement (:mod:`.refine`): robust point-to-plane ICP on the stable shell.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -31,15 +32,15 @@ from scipy.spatial import cKDTree
 
 from ..centerline.curve import Centerline
 from ..errors import RegistrationError
-from .axial import coarse_shift, fine_shift
+from .axial import AxialShift, coarse_shift, fine_shift
 
 __all__ = [
     "FineResult",
     "fine_align",
     "floor_plane",
     "rotation_between",
-    "refine_stable",
     "normals",
+    "axial_correction",
 ]
 
 logger = logging.getLogger(__name__)
@@ -80,7 +81,12 @@ def _apply(m: np.ndarray, xyz: np.ndarray) -> np.ndarray:
 
 
 def floor_plane(
-    xyz: np.ndarray, centerline: Centerline, *, distance: float, seed: int = 0
+    xyz: np.ndarray,
+    centerline: Centerline,
+    *,
+    distance: float,
+    chainage_range: tuple[float, float] | None = None,
+    seed: int = 0,
 ) -> tuple[np.ndarray, float, int]:
     """Floor plane of one epoch: RANSAC (Open3D ``segment_plane``) refined by least squares.
 
@@ -94,6 +100,8 @@ def floor_plane(
         are all points within 0.2 m of that level.
     distance : float
         RANSAC inlier distance, metres.
+    chainage_range : (float, float), optional
+        Use only the floor between these chainages of ``centerline`` (default: all of it).
 
     Returns
     -------
@@ -105,6 +113,10 @@ def floor_plane(
         Number of floor points on the plane.
     """
     p = centerline.project(xyz)
+    if chainage_range is not None:
+        p = dataclasses.replace(
+            p, inside=(p.chainage >= chainage_range[0]) & (p.chainage <= chainage_range[1])
+        )
     core = p.inside & (p.vertical < 0) & (np.abs(p.lateral) < 0.8 * np.abs(p.vertical))
     level = float(np.median(p.vertical[core])) if core.sum() >= 100 else 0.0
     # the whole floor width: everything near the floor level found below the centreline
@@ -144,9 +156,17 @@ def floor_plane(
     return n, d, int(len(idx))
 
 
-def _line_xz(cl: Centerline, trim: float) -> tuple[float, float, np.ndarray]:
-    """Least-squares line z = a x + b through the centreline (eqs. 7-10), ends trimmed."""
+def _line_xz(
+    cl: Centerline,
+    trim: float,
+    chainage: np.ndarray | None = None,
+    chainage_range: tuple[float, float] | None = None,
+) -> tuple[float, float, np.ndarray]:
+    """Least-squares line z = a x + b through the centreline (eqs. 7-10), ends trimmed, or
+    only the samples whose ``chainage`` lies in ``chainage_range``."""
     m = (cl.chainage >= trim) & (cl.chainage <= cl.length - trim)
+    if chainage_range is not None and chainage is not None:
+        m &= (chainage >= chainage_range[0]) & (chainage <= chainage_range[1])
     p = cl.points[m] if m.sum() >= 5 else cl.points
     a, b = np.polyfit(p[:, 0], p[:, 2], 1)
     return float(a), float(b), p
@@ -231,6 +251,7 @@ def fine_align(
     axial_search: float,
     ref_normals: np.ndarray | None = None,
     cmp_normals: np.ndarray | None = None,
+    common: tuple[float, float] | None = None,
     plan_iterations: int = 2,
 ) -> FineResult:
     """Stages 2-4 of the centreline registration (paper §3.2.2-3.2.4).
@@ -249,6 +270,11 @@ def fine_align(
         Largest along-axis shift searched, metres.
     ref_normals, cmp_normals : ndarray, shape (N, 3) and (M, 3), optional
         Unit normals of the points (computed when not given).
+    common : (float, float), optional
+        Chainage range of the reference centreline both epochs cover. When the compared epoch
+        is already close (a second pass), the floors and the centreline lines are taken over
+        this common stretch only, the compared floor being selected with the reference
+        centreline, so that both planes and both lines describe the same piece of tunnel.
 
     Returns
     -------
@@ -261,7 +287,15 @@ def fine_align(
     # --- cross-section (§3.2.2)
     t0 = time.perf_counter()
     n_ref, d_ref, _ = floor_plane(ref_xyz, ref_cl, distance=floor_distance)
-    n_cmp, d_cmp, _ = floor_plane(cmp_xyz, cmp_cl, distance=floor_distance)
+    if common is None:
+        n_cmp, d_cmp, _ = floor_plane(cmp_xyz, cmp_cl, distance=floor_distance)
+    else:
+        n_ref, d_ref, _ = floor_plane(
+            ref_xyz, ref_cl, distance=floor_distance, chainage_range=common
+        )
+        n_cmp, d_cmp, _ = floor_plane(
+            cmp_xyz, ref_cl, distance=floor_distance, chainage_range=common
+        )
     lo, hi = cmp_xyz.min(axis=0), cmp_xyz.max(axis=0)
     m = _about(rotation_between(n_cmp, n_ref), (lo + hi) / 2)
     p0 = _apply(m, (-d_cmp * n_cmp)[None])[0]
@@ -274,8 +308,8 @@ def fine_align(
     # --- longitudinal (§3.2.3)
     t0 = time.perf_counter()
     cl = cmp_cl.transformed(total)
-    a_r, b_r, _ = _line_xz(ref_cl, 0.5)
-    a_c, b_c, pc = _line_xz(cl, 0.5)
+    a_r, b_r, _ = _line_xz(ref_cl, 0.5, ref_cl.chainage, common)
+    a_c, b_c, pc = _line_xz(cl, 0.5, ref_cl.project(cl.points).chainage if common else None, common)
     alpha = float(np.arctan(a_r) - np.arctan(a_c))
     ca, sa = np.cos(alpha), np.sin(alpha)
     rot = np.array([[ca, 0.0, -sa], [0.0, 1.0, 0.0], [sa, 0.0, ca]])
@@ -352,58 +386,35 @@ def fine_align(
     ambiguous = spread > 1.0
     out.axial_uncertainty = float(spread if ambiguous else shift.uncertainty)
     out.axial_informative = bool(shift.informative and not ambiguous)
-    if ambiguous:
-        logger.warning(
-            "the position along the axis is not determined (the overlap has no "
-            "feature along the tunnel; +-%.1f m)",
-            spread,
-        )
     out.transform = total
     return out
 
 
-def refine_stable(
+def axial_correction(
     ref_xyz: np.ndarray,
+    ref_normals: np.ndarray,
     cmp_xyz: np.ndarray,
+    cmp_normals: np.ndarray,
     ref_cl: Centerline,
-    *,
-    voxel: float,
-    keep_fraction: float = 0.8,
-    iterations: int = 30,
-) -> np.ndarray:
-    """Robust point-to-plane ICP on the stable shell (optional last stage).
-
-    Points off the shell (equipment, clutter: more than 10 cm from the median distance to the
-    centreline in their 0.5 m x 7.5 degree cell) and the compared points with the largest
-    residuals (the ``1 - keep_fraction`` worst, where deformation is) are left out; the rest is
-    voxel-downsampled and aligned with a Tukey kernel.
-
-    Returns
-    -------
-    ndarray, shape (4, 4)
-        Correction to apply after the compared points' current transform.
-    """
-    ref_s = _shell_mask(ref_xyz, ref_cl)
-    cmp_s = _shell_mask(cmp_xyz, ref_cl)
-    ref_pts = ref_xyz[ref_s]
-    d, _ = cKDTree(ref_pts).query(cmp_xyz)
-    cmp_s &= d <= np.quantile(d[cmp_s], keep_fraction)
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cmp_xyz[cmp_s]))
-    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ref_pts))
-    src = src.voxel_down_sample(voxel)
-    dst = dst.voxel_down_sample(voxel)
-    dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
-    reg = o3d.pipelines.registration
-    loss = reg.TukeyLoss(k=2 * voxel)
-    res = reg.registration_icp(
-        src,
-        dst,
-        3 * voxel,
-        np.eye(4),
-        reg.TransformationEstimationPointToPlane(loss),
-        reg.ICPConvergenceCriteria(max_iteration=iterations),
+) -> tuple[np.ndarray, AxialShift]:
+    """A last along-axis correction (4, 4) and its uncertainty, by the 1-DOF point-to-plane
+    alignment of :func:`.axial.fine_shift` (compared points and normals already in place)."""
+    pm = ref_cl.project(cmp_xyz)
+    tan = ref_cl.frame_at(pm.chainage)[0]
+    sel = np.abs(np.einsum("ij,ij->i", cmp_normals, tan)) > 0.25
+    if sel.sum() < 200:
+        sel[:] = True
+    shift = fine_shift(
+        ref_xyz,
+        ref_normals,
+        cmp_xyz[sel],
+        tan[sel],
+        blocks=np.floor(pm.chainage[sel]).astype(np.int64),
+        kernels=(0.05,),
     )
-    return np.asarray(res.transformation)
+    t = tan[sel].mean(axis=0)
+    m = _translation(shift.shift * t / np.linalg.norm(t))
+    return m, shift
 
 
 def normals(xyz: np.ndarray, radius: float = 0.15) -> np.ndarray:
@@ -411,26 +422,3 @@ def normals(xyz: np.ndarray, radius: float = 0.15) -> np.ndarray:
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz - xyz.mean(axis=0)))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=16))
     return np.asarray(pc.normals)
-
-
-def _shell_mask(xyz: np.ndarray, cl: Centerline, tol: float = 0.1) -> np.ndarray:
-    p = cl.project(xyz)
-    i = np.floor(p.chainage / 0.5).astype(np.int64)
-    i -= i.min()
-    j = (np.floor((np.arctan2(p.vertical, p.lateral) + np.pi) / (2 * np.pi) * 48)).astype(
-        np.int64
-    ) % 48
-    key = i * 48 + j
-    order = np.argsort(key, kind="stable")
-    k_sorted = key[order]
-    r_sorted = p.distance[order]
-    starts = np.flatnonzero(np.r_[True, k_sorted[1:] != k_sorted[:-1]])
-    # median per cell: sort by (cell, r) and take the middle element
-    order2 = np.lexsort((r_sorted, k_sorted))
-    r2 = r_sorted[order2]
-    ends = np.r_[starts[1:], len(k_sorted)]
-    med = r2[(starts + ends) // 2]
-    cell_med = np.repeat(med, ends - starts)
-    mask = np.empty(len(xyz), dtype=bool)
-    mask[order] = np.abs(r_sorted - cell_med) <= tol
-    return mask
