@@ -65,3 +65,13 @@ def test_atomic_text_write_keeps_old_file_on_failure(tmp_path: Path) -> None:
 def test_csv_quotes_commas(tmp_path: Path) -> None:
     p = write_csv(tmp_path / "t.csv", [{"a": 1.5, "b": "x,y"}, {"a": None, "b": 'q"'}])
     assert p.read_text() == 'a,b\n1.5,"x,y"\n,"q"""\n'
+
+
+def test_json_has_no_nan(tmp_path: Path) -> None:
+    import json
+
+    import numpy as np
+
+    p = write_json(tmp_path / "n.json", {"a": float("nan"), "b": np.array([1.0, np.inf]),
+                                         "c": [np.float32(2.5), {"d": np.nan}]})
+    assert json.loads(p.read_text()) == {"a": None, "b": [1.0, None], "c": [2.5, {"d": None}]}

@@ -41,9 +41,25 @@ def _default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def _finite(obj: Any) -> Any:
+    """Replace NaN/inf floats (not valid JSON) by None, recursively."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
 def to_json(obj: Any) -> str:
-    """Indented JSON text; numpy arrays and scalars become lists and numbers."""
-    return json.dumps(obj, indent=2, default=_default) + "\n"
+    """Indented, strictly valid JSON text: numpy arrays and scalars become lists and numbers,
+    NaN and infinities become null."""
+    return json.dumps(_finite(obj), indent=2, default=_default, allow_nan=False) + "\n"
 
 
 def write_json(path: str | Path, obj: Any) -> Path:
