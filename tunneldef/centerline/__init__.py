@@ -394,7 +394,8 @@ def _slice_pass(
 
 
 def _reject_jumps(records: list[SliceRecord], cfg: Config) -> None:
-    """Reject slices whose width or height jumps against the median of their neighbours."""
+    """Reject slices whose width or height jumps against their neighbours (within
+    ``neighbour_window``): width against the 30th percentile, height against the median."""
     c = cfg.centerline
     ok = [r for r in records if r.ok]
     if len(ok) < 3:
@@ -404,7 +405,10 @@ def _reject_jumps(records: list[SliceRecord], cfg: Config) -> None:
     hei = np.array([r.height for r in ok])
     for r in ok:
         near = np.abs(st - r.station) <= c.neighbour_window
-        mw, mh = float(np.median(wid[near])), float(np.median(hei[near]))
+        # chambers, niches and junctions only ever widen a tunnel: the reference width is a
+        # low quantile of the neighbours', right even where wide slices are the majority
+        mw = float(np.percentile(wid[near], 30))
+        mh = float(np.median(hei[near]))
         if r.width - mw > c.max_width_jump:
             r.ok, r.reason = False, f"chamber or niche: width {r.width:.2f} m vs {mw:.2f} m nearby"
         elif mw - r.width > c.max_width_jump:
