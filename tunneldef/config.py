@@ -67,10 +67,12 @@ class CenterlineConfig:
                                     "equipment and pipes under the roof stay out)")
     max_wall_angle_deg: float = _p(20.0, "ours: Hough lines within 20 deg of the axis only")
     hough_peak_ratio: float = _p(0.3, "ours: Hough peaks below 30% of the strongest are ignored")
-    max_width_jump: float = _p(0.3, "ours: a slice wider than its neighbours' median by more "
-                                    "than this is a chamber/niche and is rejected, m")
-    max_height_jump: float = _p(0.3, "ours: same for the height (missing floor/roof), m")
-    neighbour_window: float = _p(10.0, "ours: neighbours within +-10 m give the median, m")
+    max_width_jump: float = _p(0.3, "ours: a slice wider than its neighbours' 30th percentile "
+                                    "width by more than this is a chamber/niche/junction and is "
+                                    "rejected (narrower: inconsistent walls), m")
+    max_height_jump: float = _p(0.3, "ours: same against the neighbours' median height "
+                                     "(missing floor/roof), m")
+    neighbour_window: float = _p(10.0, "ours: neighbours within +-10 m of a slice, m")
     degree: int = _p(3, "paper §3.1.4: cubic NURBS")
     ctrl_spacing: float = _p(2.0, "ours: about one control point per 2 m: fewer control points "
                                   "than centres, so the least-squares curve smooths their noise")
