@@ -133,18 +133,13 @@ def _brute_core(ref, cmp_, res, q, *, ref_core, cmp_core, max_depth=0.3, radius_
         lat2 = np.einsum("ij,ij->i", off, off) - a * a
         same = np.einsum("ij,j->i", res.core_normal[owner].astype(np.float32), n32)
         inside = (lat2 <= r * r) & (np.abs(a) <= depth) & (same >= np.cos(np.radians(35.0)))
-        v = np.sort(a[inside].astype(np.float64))
-        m = len(v)
-
-        def quant(p, v=v, m=m):
-            return v[int(np.floor(p * (m - 1)))]
-
-        med, s = quant(0.5), (quant(0.75) - quant(0.25)) / 1.349
-        keep = np.abs(v - med) <= max(3 * s, 0.005)
-        keep &= v >= quant(0.2)
-        mu = v[keep].mean()
-        sd = v[keep].std(ddof=1)
-        keep &= np.abs(v - mu) <= max(3 * sd, 0.005)
+        v = a[inside].astype(np.float64)
+        keep = np.abs(v - v.mean()) <= max(3 * v.std(ddof=1), 0.005)
+        mu, sd = v[keep].mean(), v[keep].std(ddof=1)
+        keep = np.abs(v - mu) <= max(3 * sd, 0.005)
+        keep &= v - mu >= -0.8416212335729143 * sd  # the innermost 20 %
+        mu2, sd2 = v[keep].mean(), v[keep].std(ddof=1)
+        keep &= np.abs(v - mu2) <= max(3 * sd2, 0.005)
         out.append((v[keep].mean(), int(keep.sum())))
     return out[1][0] - out[0][0], out[0][1], out[1][1]
 

@@ -15,9 +15,9 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
 3. *Cylinder means*: reference and compared points inside a cylinder of radius
    ``cylinder_radius`` along that normal are projected on the normal. Only points of the same
    surface count (their nearest core's normal within 35 degrees of this one). Each epoch's
-   location is a robust mean: values beyond 3 robust sigma of the median are dropped, then the
-   innermost 20 % (objects near the rock - cables, pipe backs, the other wall near a corner -
-   all lie inward of it), then values beyond 3 sigma of the mean. The deformation is the
+   location is a robust mean: two passes of 3-sigma clipping, then the innermost 20 % are
+   dropped (objects near the rock - cables, pipe backs, the other wall near a corner - all lie
+   inward of it), then one more 3-sigma clip. The deformation is the
    compared location minus the reference location: negative means the surface moved into the
    tunnel (the paper's sign convention).
 4. *Level of detection*: ``lod95 = 1.96 (sqrt(s_r^2 / n_r + s_c^2 / n_c) + registration_sigma)``
@@ -26,11 +26,12 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
 Depth: the core lies on the compared surface, so compared points are taken within
 ``min(max_depth, cylinder_radius)`` of it along the normal; reference points first within the
 same depth, and within ``max_depth`` where the reference surface was not found there.
-Adaptive scale: a core whose cylinder holds fewer than ``min_points`` points of either epoch,
-or is more than 1.5 times rougher than the median cylinder (shadowed rock behind pipes,
-objects close to the rock), is measured again with a cylinder twice as wide. A core gets NaN
-only when no reference point of its surface lies in that wider cylinder within ``max_depth``
-(the surface moved further than ``max_depth``, or the reference epoch did not see it). Where
+Adaptive scale: a core whose cylinder holds fewer than ``min_points`` points of either epoch
+(but some of each), or, on a planar surface, is more than 1.5 times rougher than the median
+cylinder (shadowed rock behind pipes, objects close to the rock), is measured again with a
+cylinder twice as wide. A core gets NaN only when no reference point of its surface lies in
+its cylinder within ``max_depth`` (the surface moved further than ``max_depth``, the
+reference epoch did not see it, or the point is a stray return in mid-air). Where
 fewer than three reference points lie within ``normal_radius``, the normal falls back to the
 radial direction from the centreline. Corners: points whose core straddles two surfaces
 (surface variation above 0.02) take the value of the nearest planar core whose plane passes
@@ -38,8 +39,7 @@ closest to them.
 
 Everything is vectorised: neighbourhoods come from ``cKDTree.query_ball_point`` (unsorted,
 multi-threaded) on spatially sorted copies of the clouds, are flattened into one index array
-per chunk of cores, and every per-core statistic is a ``np.bincount`` over that flat array (or
-one sort of it, for the medians and quartiles).
+per chunk of cores, and every per-core statistic is a ``np.bincount`` over that flat array.
 
 References
 ----------
@@ -75,7 +75,7 @@ _MAX_VARIATION = 0.02  # a plane with 2 cm noise at a 0.3 m radius: ~0.005; a co
 _K_SPREAD = 6  # cores interpolated at each point
 _SPREAD_SIGMA = 0.6  # of the core spacing: Gaussian weights of the interpolation
 _SPREAD_PLANE = 0.1  # a core's plane must pass this close to a point to be interpolated, m
-_K_ASSIGN = 16  # candidate planar cores for a point of a corner core
+_K_ASSIGN = 8  # candidate planar cores for a point of a corner core
 _MAX_ANGLE_DEG = 35.0  # points of the same surface as a core: normals within this angle
 _COS_MAX_ANGLE = float(np.cos(np.radians(_MAX_ANGLE_DEG)))
 
@@ -256,6 +256,16 @@ def _voxel_normals(
     return normals, variation
 
 
+def _group_moments(group, values, keep, ngroups):
+    """Count, mean and standard deviation of the kept values of each group."""
+    w = keep.astype(np.float64)
+    n = np.bincount(group, weights=w, minlength=ngroups)
+    mean = np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0)
+    dev = values - mean[group]
+    var = np.bincount(group, weights=w * dev * dev, minlength=ngroups) / np.maximum(n - 1.0, 1.0)
+    return n, mean, np.sqrt(var), dev
+
+
 def _clipped_stats(
     group: np.ndarray,
     values: np.ndarray,
@@ -266,64 +276,38 @@ def _clipped_stats(
     trim: float = _INNER_TRIM,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust location, spread and count of ``values`` (positions along the outward normal)
-    per group.
+    per group, without sorting.
 
-    ``group`` must be sorted (non-decreasing). Quantiles are order statistics:
-    ``sorted[floor(p * (n - 1))]``. (1) Values farther than ``max(k * s, floor)`` from their
-    group's median are dropped (``s`` = interquartile range / 1.349); the standard deviation of
-    the survivors is the spread returned (for the level of detection). (2) Values below the
-    group's ``trim`` quantile are dropped too: the innermost points (cables, pipe backs, the
-    other surface near a corner all lie inward of the shell; the rock behind it is clean).
-    (3) Values farther than ``k`` standard deviations from the survivors' mean are dropped.
-    Returns the mean of the last survivors, the spread and their count; groups without values
-    get NaN and 0.
+    (1) Two passes of sigma clipping: values farther than ``max(k * std, floor)`` from the
+    mean are dropped, the first pass's mean and std taken over all values; the standard
+    deviation of the survivors is the spread returned (for the level of detection). (2) The
+    innermost ``trim`` fraction is dropped: values below ``mean - z * std``, ``z`` the
+    ``trim`` quantile of a normal distribution (cables, pipe backs, the other surface near a
+    corner all lie inward of the shell; the rock behind it is clean). (3) Values farther than
+    ``k`` standard deviations from the survivors' mean are dropped. Returns the mean of the last
+    survivors, the spread and their count; groups without values get NaN and 0.
     """
-    cnt = np.bincount(group, minlength=ngroups)
-    if values.size:
-        lo = float(values.min())
-        span = float(values.max()) - lo + 1.0
-        base = group * span
-        sv = values[np.argsort(base + (values - lo))]  # values sorted within each group
-    else:
-        sv = values
-    start = np.cumsum(cnt) - cnt
-    has = cnt > 0
-    last = np.maximum(cnt - 1, 0)
-
-    def quantile(p: float) -> np.ndarray:
-        q = np.full(ngroups, np.nan)
-        q[has] = sv[start[has] + np.floor(p * last[has]).astype(np.intp)]
-        return q
-
-    med = quantile(0.5)
-    spread = (quantile(0.75) - quantile(0.25)) / 1.349
-    keep = np.abs(values - med[group]) <= np.maximum(k * spread[group], floor)
-    w = keep.astype(np.float64)
-    n = np.bincount(group, weights=w, minlength=ngroups)
-    dev = (
-        values
-        - (np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0))[group]
-    )
-    spread = np.sqrt(
-        np.bincount(group, weights=w * dev * dev, minlength=ngroups) / np.maximum(n - 1.0, 1.0)
-    )
+    keep = np.ones(values.shape[0], dtype=bool)
+    _, _, std, dev = _group_moments(group, values, keep, ngroups)
+    keep = np.abs(dev) <= np.maximum(k * std[group], floor)
+    _, mean, spread, dev = _group_moments(group, values, keep, ngroups)
+    keep = np.abs(dev) <= np.maximum(k * spread[group], floor)
     if trim > 0:
-        keep &= values >= quantile(trim)[group]
-    w = keep.astype(np.float64)
-    n = np.bincount(group, weights=w, minlength=ngroups)
-    mean = np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0)
-    dev = values - mean[group]
-    std = np.sqrt(
-        np.bincount(group, weights=w * dev * dev, minlength=ngroups) / np.maximum(n - 1.0, 1.0)
-    )
+        keep &= dev >= -_normal_quantile(1.0 - trim) * spread[group]
+    _, _, std, dev = _group_moments(group, values, keep, ngroups)
     keep &= np.abs(dev) <= np.maximum(k * std[group], floor)
-    w = keep.astype(np.float64)
-    n = np.bincount(group, weights=w, minlength=ngroups)
-    mean = np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0)
+    n, mean, _, _ = _group_moments(group, values, keep, ngroups)
     empty = n < 1
     mean[empty] = np.nan
     spread[empty] = np.nan
     return mean, spread, n.astype(np.int32)
+
+
+def _normal_quantile(p: float) -> float:
+    """Quantile of the standard normal distribution."""
+    from scipy.special import ndtri
+
+    return float(ndtri(p))
 
 
 def _outward(centerline: Centerline, xyz: np.ndarray, workers: int) -> np.ndarray:
@@ -461,8 +445,7 @@ def robust_deformation(
     out = {k: np.zeros(n_cores) for k in ("mr", "sr", "nr", "mc", "sc", "nc")}
     radius_used = np.full(n_cores, cylinder_radius)
     depth_used = np.full(n_cores, short)
-    n_fallback = n_deep = 0
-    wide_done = np.zeros(n_cores, dtype=bool)
+    n_deep = 0
     for start in range(0, n_cores, _CHUNK):
         sl = slice(start, min(start + _CHUNK, n_cores))
         c, nrm = cores[sl], normal[sl]
@@ -482,44 +465,45 @@ def robust_deformation(
                 for s_, w in zip(stats[:3], ref_deep, strict=True):
                     s_[deep] = w
                 depth_used[np.arange(sl.start, sl.stop)[deep]] = max_depth
-        weak = (stats[2] < min_points) | (stats[5] < min_points)
-        wide_done[sl] = weak
-        if weak.any():
-            n_fallback += int(weak.sum())
-            cw, nw, rw = c[weak], nrm[weak], 2.0 * cylinder_radius
-            wide = [
-                *_epoch_stats(*ref_epoch, cw, nw, rw, max_depth, workers),
-                *_epoch_stats(*cmp_epoch, cw, nw, rw, short, workers),
-            ]
-            for s_, w in zip(stats, wide, strict=True):
-                s_[weak] = w
-            radius_used[np.arange(sl.start, sl.stop)[weak]] = 2.0 * cylinder_radius
-            depth_used[np.arange(sl.start, sl.stop)[weak]] = max_depth
         for key, s_ in zip(out, stats, strict=True):
             out[key][sl] = s_
-        report(progress, "robust deformation", 0.2 + 0.7 * sl.stop / n_cores)
+        report(progress, "robust deformation", 0.2 + 0.5 * sl.stop / n_cores)
 
-    # pass 3: cores whose cylinders are much rougher than is typical (objects close to the
-    # shell, shadowed shell) are measured again with a cylinder twice as wide
-    rough = np.zeros(n_cores, dtype=bool)
+    # pass 3, adaptive scale: cores with too few points of an epoch (but some of each: a core
+    # without any is off the surface, or its surface has no counterpart) or a cylinder much
+    # rougher than is typical (objects close to the shell, shadowed shell) are measured again
+    # with a cylinder twice as wide
+    weak = (out["nr"] < min_points) | (out["nc"] < min_points)
+    weak &= (out["nr"] > 0) & (out["nc"] > 0)
+    n_sparse = int(weak.sum())
     for key in ("sr", "sc"):
         typical = np.nanmedian(out[key]) if np.isfinite(out[key]).any() else np.inf
         with np.errstate(invalid="ignore"):
-            rough |= out[key] > _ROUGH_FACTOR * typical
-    rough_ids = np.flatnonzero(rough & ~wide_done)
-    for start in range(0, len(rough_ids), _CHUNK):
-        ids = rough_ids[start : start + _CHUNK]
+            weak |= (out[key] > _ROUGH_FACTOR * typical) & (variation <= _MAX_VARIATION)
+    wide_ids = np.flatnonzero(weak)
+    for start in range(0, len(wide_ids), _CHUNK):
+        ids = wide_ids[start : start + _CHUNK]
         c, nrm, rw = cores[ids], normal[ids], 2.0 * cylinder_radius
-        wide = [
-            *_epoch_stats(*ref_epoch, c, nrm, rw, max_depth, workers),
-            *_epoch_stats(*cmp_epoch, c, nrm, rw, short, workers),
-        ]
-        for key, w in zip(out, wide, strict=True):
+        ref_d = depth_used[ids]
+        stats = [np.zeros(len(ids)) for _ in range(6)]
+        for depth in np.unique(ref_d):
+            m = ref_d == depth
+            for s_, w in zip(
+                stats[:3], _epoch_stats(*ref_epoch, c[m], nrm[m], rw, depth, workers), strict=True
+            ):
+                s_[m] = w
+        cmp_w = _epoch_stats(*cmp_epoch, c, nrm, rw, short, workers)
+        for s_, w in zip(stats[3:], cmp_w, strict=True):
+            s_[:] = w
+        for key, w in zip(out, stats, strict=True):
             out[key][ids] = w
-        radius_used[ids] = 2.0 * cylinder_radius
-        depth_used[ids] = max_depth
-    n_fallback += len(rough_ids)
-    report(progress, "robust deformation", 0.95)
+        radius_used[ids] = rw
+        report(
+            progress,
+            "robust deformation",
+            0.7 + 0.25 * min(start + _CHUNK, len(wide_ids)) / len(wide_ids),
+        )
+    n_fallback = len(wide_ids)
 
     d_mean = out["mc"] - out["mr"]
     n_r, n_c = out["nr"], out["nc"]
@@ -581,6 +565,7 @@ def robust_deformation(
             "registration_sigma": registration_sigma,
             "cores": n_cores,
             "wide_cylinder_cores": n_fallback,
+            "sparse_cores": n_sparse,
             "deep_cylinder_cores": n_deep,
             "nan_cores": n_nan,
         },
