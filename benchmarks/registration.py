@@ -4,7 +4,7 @@ Pairs (each compared epoch moved by a known rigid motion with any heading, a few
 and hundreds of metres of translation, and carrying a 3 cm roof sag):
 
 * synth ``straight``, ``curved`` (radius 80 m), ``arched`` (arch section), 30 m, with a chamber
-  and wall equipment, the compared stretch shifted by 2 m;
+  and wall equipment, the compared stretch shifted by 2 m, the sag 10 m long and 4 m wide;
 * ``drift``: the real Freiberg drift (``../shared/data/freiberg_mine_drift_tls.laz``),
   subsampled and split at random into two halves, the second moved and sagged.
 
@@ -63,7 +63,9 @@ def synth_case(name: str, density: float, seed: int):
             yaw_deg=yaw,
             seed=seed,
             deformations=(
-                DeformationSpec(kind="roof_sag", chainage=15.0, length=4.0, amplitude=0.03),
+                DeformationSpec(
+                    kind="roof_sag", chainage=15.0, length=10.0, width=4.0, amplitude=0.03
+                ),
             ),
         )
     )

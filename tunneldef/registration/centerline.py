@@ -10,7 +10,8 @@ reference centroid (survey coordinates never enter the numerics):
    floor and the compared floor normal is rotated onto the reference's about the centre of the
    compared bounding box, then the floors are brought to the same height;
 3. longitudinal (§3.2.3): least-squares lines z = a x + b through both centrelines' (x, z); the
-   compared line is rotated onto the reference's about their intersection;
+   compared line is rotated parallel to the reference's (about the floor below its middle, so
+   that the height stays set by the floors, which roof sag does not bias);
 4. plan (§3.2.4): the rotation minimising the variance of nearest-point distances between the
    centrelines' xoy projections (small-angle steps), the shift along the axis from a
    cross-correlation (eq. 12, generalised in :mod:`.axial`), and the mean lateral offset; on a
@@ -313,12 +314,13 @@ def fine_align(
     alpha = float(np.arctan(a_r) - np.arctan(a_c))
     ca, sa = np.cos(alpha), np.sin(alpha)
     rot = np.array([[ca, 0.0, -sa], [0.0, 1.0, 0.0], [sa, 0.0, ca]])
-    # rotating about the lines' intersection == rotating about a point of the compared line
-    # and moving it onto the reference line (stable when the lines are nearly parallel)
+    # The paper rotates about the lines' intersection, which also moves the compared line's
+    # height onto the reference's. Here the rotation is about the floor below the compared
+    # centreline's middle instead, so the height stays where the floors put it: mid-height
+    # centrelines are pulled down by roof sag and up by coal, the floor plane much less.
     xm = float(pc[:, 0].mean())
-    centre = np.array([xm, 0.0, a_c * xm + b_c])
+    centre = np.array([xm, 0.0, -(d_ref + n_ref[0] * xm) / n_ref[2]])
     m = _about(rot, centre)
-    m = _translation(np.array([0.0, 0.0, a_r * xm + b_r - centre[2]])) @ m
     total = m @ total
     out.stages["longitudinal"] = total.copy()
     out.timings["longitudinal"] = time.perf_counter() - t0
