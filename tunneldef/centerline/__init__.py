@@ -35,9 +35,9 @@ from ..frame import TunnelFrame, principal_frame
 from ..progress import ProgressCallback, report
 from .curve import Centerline, Projection
 from .fit import fit_centerline
-from .roof_floor import RoofFloor, roof_floor_lines
+from .roof_floor import RoofFloor, estimate_roll, roof_floor_lines
 from .slicing import slice_along_axis
-from .walls import WallLines, wall_lean, wall_lines
+from .walls import WallLines, estimate_wall_leans, wall_lines
 
 __all__ = [
     "Centerline",
@@ -204,52 +204,6 @@ def _local_to_world(
     return _curve_to_world(axis)(local)
 
 
-def _estimate_roll(local: np.ndarray, cfg: Config) -> float:
-    """Roll of the section about the axis (radians) from the cross-slopes of floor and roof.
-
-    Every metre a slice's floor and roof peaks are found (wide window only); the points within
-    two windows of each are fitted with a line across the tunnel (inner 80 % of their lateral
-    range, so wall corners do not count; one 3-MAD trim). The median slope is the roll. It is
-    taken as 0 below 0.1 degree (a levelled scan is left untouched) and when the slopes disagree
-    by more than 1 degree (robust spread: a rough floor, not a rolled scan).
-    """
-    c = cfg.centerline
-    slopes = []
-    for sl in slice_along_axis(
-        local[:, 0], step=max(cfg.slicing.step, 1.0), thickness=cfg.slicing.thickness
-    ):
-        if len(sl.index) < cfg.slicing.min_points:
-            continue
-        p = local[sl.index]
-        rf = roof_floor_lines(
-            p[:, 2], bandwidth=c.kde_bandwidth, min_share=c.min_peak_share, refine_bandwidth=None
-        )
-        if not rf.ok:
-            continue
-        for z0 in (rf.floor, rf.roof):
-            q = p[np.abs(p[:, 2] - z0) < 2 * c.kde_bandwidth]
-            if len(q) < 30:
-                continue
-            lo, hi = np.quantile(q[:, 1], [0.1, 0.9])
-            q = q[(q[:, 1] >= lo) & (q[:, 1] <= hi)]
-            if len(q) < 30 or hi - lo < 0.5:
-                continue
-            b, a = np.polyfit(q[:, 1], q[:, 2], 1)
-            r = q[:, 2] - (a + b * q[:, 1])
-            keep = np.abs(r - np.median(r)) <= 3 * 1.4826 * np.median(np.abs(r - np.median(r)))
-            if keep.sum() >= 30:
-                b, a = np.polyfit(q[keep, 1], q[keep, 2], 1)
-            slopes.append(b)
-    if len(slopes) < 3:
-        return 0.0
-    angles = np.arctan(slopes)
-    spread = 1.4826 * float(np.median(np.abs(angles - np.median(angles))))
-    if spread > np.radians(1.0):
-        return 0.0  # rough floor/roof, no common cross-slope: nothing to level
-    roll = float(np.median(angles))
-    return roll if abs(roll) >= np.radians(0.1) else 0.0
-
-
 def analyse_slice(
     local: np.ndarray,
     station: float,
@@ -266,7 +220,8 @@ def analyse_slice(
     station : float
         Along-axis position of the slice, metres.
     leans : (float, float)
-        Lean of the left and right wall (dv/dw, 0 = vertical), see :func:`_estimate_leans`.
+        Lean of the left and right wall (dv/dw, 0 = vertical), see
+        :func:`~tunneldef.centerline.walls.estimate_wall_leans`.
 
     Returns
     -------
@@ -305,58 +260,6 @@ def analyse_slice(
         leans=leans,
     )
     return rf, walls, band
-
-
-def _estimate_leans(local: np.ndarray, cfg: Config, min_lean: float = 0.05) -> tuple[float, float]:
-    """Lean dv/dw of the left and right walls, common to the whole tunnel.
-
-    Every metre, the wall band of a slice is split at the middle of its lateral extent and each
-    side's lean is measured (:func:`~tunneldef.centerline.walls.wall_lean`); the median over
-    the slices is the wall's lean (a design section is the same along the tunnel; the median
-    ignores slices where pipes or a conveyor hide the wall). The leans are used only when both
-    walls lean by at least ``min_lean`` (2.9 deg), steadily along the tunnel (robust spread at
-    most half the lean) and symmetrically (the section narrows or widens upwards on both
-    sides); anything else (vertical walls, an arch springing inside the wall band, rough rock)
-    is measured as vertical walls, as in the paper.
-    """
-    c = cfg.centerline
-    leans: list[tuple[float, float]] = []
-    for sl in slice_along_axis(
-        local[:, 0], step=max(cfg.slicing.step, 1.0), thickness=cfg.slicing.thickness
-    ):
-        if len(sl.index) < cfg.slicing.min_points:
-            continue
-        p = local[sl.index]
-        rf = roof_floor_lines(p[:, 2], bandwidth=c.kde_bandwidth, min_share=c.min_peak_share)
-        if not rf.ok:
-            continue
-        h = rf.roof - rf.floor
-        q = p[
-            (p[:, 2] > rf.floor + c.wall_band_low * h) & (p[:, 2] < rf.floor + c.wall_band_high * h)
-        ]
-        if len(q) < 40:
-            continue
-        mid = float(np.mean(np.percentile(q[:, 1], [2, 98])))
-        w_ref = rf.floor + 0.5 * (c.wall_band_low + c.wall_band_high) * h
-        pair = []
-        for side in (1.0, -1.0):
-            m = side * (q[:, 1] - mid) > 0
-            pair.append(wall_lean(q[m, 1], q[m, 2] - w_ref, side=side) if m.sum() >= 20 else np.nan)
-        leans.append((pair[0], pair[1]))
-    if len(leans) < 3:
-        return 0.0, 0.0
-    cols = [col[np.isfinite(col)] for col in np.array(leans).T]
-    med = np.array([np.median(col) if col.size >= 3 else np.nan for col in cols])
-    spread = np.array(
-        [
-            1.4826 * np.median(np.abs(col - m)) if col.size >= 3 else np.nan
-            for col, m in zip(cols, med, strict=True)
-        ]
-    )
-    steady = np.isfinite(med) & (np.abs(med) >= min_lean) & (spread <= 0.5 * np.abs(med))
-    if steady.all() and med[0] * med[1] < 0:
-        return float(med[0]), float(med[1])
-    return 0.0, 0.0
 
 
 def _slice_pass(
@@ -527,11 +430,11 @@ def extract_centerline(
         logger.info("centreline: %d of %d points used", int(keep.sum()), len(pts))
         pts = pts[keep]
     frame = principal_frame(pts, vertical=c.vertical)
-    roll = _estimate_roll(frame.to_local(pts), cfg)
+    roll = estimate_roll(frame.to_local(pts), cfg)
     if roll:
         logger.info("centreline: section rolled by %.2f deg about the axis", np.degrees(roll))
     local = _axis_coordinates(pts, None, frame, roll)
-    leans = _estimate_leans(local, cfg)
+    leans = estimate_wall_leans(local, cfg)
     if any(leans):
         logger.info("centreline: walls lean by %.3f / %.3f (dv/dz)", *leans)
     records = _slice_pass(local, cfg, progress, "centreline pass 1", leans)

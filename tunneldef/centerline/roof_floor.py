@@ -9,6 +9,9 @@ one window, so scattered outliers, cables and small equipment never win (a plain
 would). Each peak is then refined with a narrow kernel around it, which removes the pull of the
 walls' points on the wide window's peak (about ``B h^2 / A`` for wall density B per metre and A
 floor points, ~1 cm in a 2 m drift).
+
+:func:`estimate_roll` measures the cross-slope shared by floors and roofs (a scan rolled about
+the tunnel axis), which the caller removes before looking for level lines.
 """
 
 from __future__ import annotations
@@ -19,7 +22,10 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
-__all__ = ["RoofFloor", "roof_floor_lines", "kernel_density_1d", "refine_peak"]
+from ..config import Config
+from .slicing import slice_along_axis
+
+__all__ = ["RoofFloor", "roof_floor_lines", "kernel_density_1d", "refine_peak", "estimate_roll"]
 
 KDE_PEAK = "kde_peak"
 
@@ -160,3 +166,52 @@ def roof_floor_lines(
         floor = refine_peak(z, floor, window=bandwidth, bandwidth=refine_bandwidth)
         roof = refine_peak(z, roof, window=bandwidth, bandwidth=refine_bandwidth)
     return RoofFloor(floor, roof, KDE_PEAK, "", grid, dens, peaks, shares)
+
+
+def estimate_roll(local: np.ndarray, cfg: Config) -> float:
+    """Roll of the section about the axis (radians) from the cross-slopes of floor and roof.
+
+    ``local`` holds the points as (along, lateral, vertical), shape (N, 3), metres; ``cfg``
+    gives the slicing and kernel parameters. Positive: the floor rises to the left.
+
+    Every metre a slice's floor and roof peaks are found (wide window only); the points within
+    two windows of each are fitted with a line across the tunnel (inner 80 % of their lateral
+    range, so wall corners do not count; one 3-MAD trim). The median slope is the roll. It is
+    taken as 0 below 0.1 degree (a levelled scan is left untouched) and when the slopes disagree
+    by more than 1 degree (robust spread: a rough floor, not a rolled scan).
+    """
+    c = cfg.centerline
+    slopes = []
+    for sl in slice_along_axis(
+        local[:, 0], step=max(cfg.slicing.step, 1.0), thickness=cfg.slicing.thickness
+    ):
+        if len(sl.index) < cfg.slicing.min_points:
+            continue
+        p = local[sl.index]
+        rf = roof_floor_lines(
+            p[:, 2], bandwidth=c.kde_bandwidth, min_share=c.min_peak_share, refine_bandwidth=None
+        )
+        if not rf.ok:
+            continue
+        for z0 in (rf.floor, rf.roof):
+            q = p[np.abs(p[:, 2] - z0) < 2 * c.kde_bandwidth]
+            if len(q) < 30:
+                continue
+            lo, hi = np.quantile(q[:, 1], [0.1, 0.9])
+            q = q[(q[:, 1] >= lo) & (q[:, 1] <= hi)]
+            if len(q) < 30 or hi - lo < 0.5:
+                continue
+            b, a = np.polyfit(q[:, 1], q[:, 2], 1)
+            r = q[:, 2] - (a + b * q[:, 1])
+            keep = np.abs(r - np.median(r)) <= 3 * 1.4826 * np.median(np.abs(r - np.median(r)))
+            if keep.sum() >= 30:
+                b, a = np.polyfit(q[keep, 1], q[keep, 2], 1)
+            slopes.append(b)
+    if len(slopes) < 3:
+        return 0.0
+    angles = np.arctan(slopes)
+    spread = 1.4826 * float(np.median(np.abs(angles - np.median(angles))))
+    if spread > np.radians(1.0):
+        return 0.0  # rough floor/roof, no common cross-slope: nothing to level
+    roll = float(np.median(angles))
+    return roll if abs(roll) >= np.radians(0.1) else 0.0

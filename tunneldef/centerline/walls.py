@@ -16,6 +16,9 @@ Steps (paper §3.1.3, with the guards a cluttered mine needs):
    lines: equipment hangs inside the walls). Each is refined to the mode of the lateral offsets
    of the points near it (narrow kernel density), since Canny marks the *edge* of the wall's
    density ridge, a few centimetres outside the wall.
+6. Leaning walls (a trapezoidal section) are a strip, not a line, from above: when the whole
+   tunnel's walls lean (:func:`estimate_wall_leans`), the points are first moved along the lean
+   to the middle of the wall band, where the wall is then measured.
 
 If no Hough line qualifies at all (an image too sparse for edges), a 1-D density of the lateral
 offsets gives the first and last significant peaks instead (method ``"fallback"``); if the lines
@@ -28,13 +31,16 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import convolve1d, gaussian_filter, sobel, uniform_filter1d
+from scipy.signal import find_peaks
 from scipy.stats import theilslopes
 from skimage.feature import canny
 from skimage.transform import hough_line, hough_line_peaks
 
-from .roof_floor import kernel_density_1d, refine_peak
+from ..config import Config
+from .roof_floor import kernel_density_1d, refine_peak, roof_floor_lines
+from .slicing import slice_along_axis
 
-__all__ = ["WallLines", "wall_lines", "wall_lean", "linear_kernel_density"]
+__all__ = ["WallLines", "wall_lines", "wall_lean", "estimate_wall_leans", "linear_kernel_density"]
 
 HOUGH = "hough"
 FALLBACK = "fallback"
@@ -173,8 +179,6 @@ def wall_lean(v: np.ndarray, dz: np.ndarray, *, side: float, bin_height: float =
 
 def _fallback(v: np.ndarray, *, bandwidth: float, min_share: float) -> tuple[float, float] | None:
     grid, dens = kernel_density_1d(v, bandwidth=bandwidth)
-    from scipy.signal import find_peaks
-
     idx, _ = find_peaks(dens, prominence=0.05 * dens.max())
     if idx.size < 2:
         return None
@@ -305,3 +309,60 @@ def wall_lines(
         return WallLines(left, right, 0.0, 0.0, FALLBACK, "", image, edges, extent, lines)
     reason = "no wall line" if len(lines) == 0 else "only one wall found (the other is missing)"
     return WallLines(np.nan, np.nan, 0.0, 0.0, "", reason, image, edges, extent, lines)
+
+
+def estimate_wall_leans(
+    local: np.ndarray, cfg: Config, *, min_lean: float = 0.05
+) -> tuple[float, float]:
+    """Lean dv/dw of the left and right walls, common to the whole tunnel.
+
+    ``local`` holds the points as (along, lateral, vertical), shape (N, 3), metres (section
+    levelled); ``cfg`` gives the slicing, kernel and wall-band parameters.
+
+    Every metre, the wall band of a slice is split at the middle of its lateral extent and each
+    side's lean is measured (:func:`wall_lean`); the median over
+    the slices is the wall's lean (a design section is the same along the tunnel; the median
+    ignores slices where pipes or a conveyor hide the wall). The leans are used only when both
+    walls lean by at least ``min_lean`` (2.9 deg), steadily along the tunnel (robust spread at
+    most half the lean) and symmetrically (the section narrows or widens upwards on both
+    sides); anything else (vertical walls, an arch springing inside the wall band, rough rock)
+    is measured as vertical walls, as in the paper.
+    """
+    c = cfg.centerline
+    leans: list[tuple[float, float]] = []
+    for sl in slice_along_axis(
+        local[:, 0], step=max(cfg.slicing.step, 1.0), thickness=cfg.slicing.thickness
+    ):
+        if len(sl.index) < cfg.slicing.min_points:
+            continue
+        p = local[sl.index]
+        rf = roof_floor_lines(p[:, 2], bandwidth=c.kde_bandwidth, min_share=c.min_peak_share)
+        if not rf.ok:
+            continue
+        h = rf.roof - rf.floor
+        q = p[
+            (p[:, 2] > rf.floor + c.wall_band_low * h) & (p[:, 2] < rf.floor + c.wall_band_high * h)
+        ]
+        if len(q) < 40:
+            continue
+        mid = float(np.mean(np.percentile(q[:, 1], [2, 98])))
+        w_ref = rf.floor + 0.5 * (c.wall_band_low + c.wall_band_high) * h
+        pair = []
+        for side in (1.0, -1.0):
+            m = side * (q[:, 1] - mid) > 0
+            pair.append(wall_lean(q[m, 1], q[m, 2] - w_ref, side=side) if m.sum() >= 20 else np.nan)
+        leans.append((pair[0], pair[1]))
+    if len(leans) < 3:
+        return 0.0, 0.0
+    cols = [col[np.isfinite(col)] for col in np.array(leans).T]
+    med = np.array([np.median(col) if col.size >= 3 else np.nan for col in cols])
+    spread = np.array(
+        [
+            1.4826 * np.median(np.abs(col - m)) if col.size >= 3 else np.nan
+            for col, m in zip(cols, med, strict=True)
+        ]
+    )
+    steady = np.isfinite(med) & (np.abs(med) >= min_lean) & (spread <= 0.5 * np.abs(med))
+    if steady.all() and med[0] * med[1] < 0:
+        return float(med[0]), float(med[1])
+    return 0.0, 0.0
