@@ -454,9 +454,8 @@ def robust_deformation(
             *_epoch_stats(*cmp_epoch, c, nrm, cylinder_radius, short, workers),
         ]
         if max_depth > short:
-            deep = (stats[2] < min_points) | ~(
-                np.abs(stats[0]) < short - 3.0 * np.maximum(stats[1], 0.01)
-            )
+            # no reference point, or its mean close to the end of the short cylinder
+            deep = (stats[2] == 0) | ~(np.abs(stats[0]) < short - 3.0 * np.maximum(stats[1], 0.01))
             if deep.any():
                 n_deep += int(deep.sum())
                 ref_deep = _epoch_stats(
