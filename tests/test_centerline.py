@@ -21,7 +21,7 @@ from tunneldef.centerline.roof_floor import roof_floor_lines
 from tunneldef.centerline.slicing import slice_along_axis, slice_stations
 from tunneldef.centerline.walls import linear_kernel_density, wall_lines
 from tunneldef.config import Config
-from tunneldef.errors import NotATunnelError
+from tunneldef.errors import InvalidCloudError, NotATunnelError
 from tunneldef.synth import PairSpec, SectionSpec, TunnelSpec, make_pair, make_tunnel
 
 RNG_SEED = 11
@@ -252,6 +252,13 @@ def test_too_few_points() -> None:
     rng = np.random.default_rng(RNG_SEED)
     with pytest.raises(NotATunnelError, match="at least 1000"):
         extract_centerline(rng.uniform(0, 10, (500, 3)) * [10, 1, 1])
+
+
+def test_non_finite_coordinates_are_refused() -> None:
+    xyz = np.zeros((5000, 3))
+    xyz[7, 1] = np.nan
+    with pytest.raises(InvalidCloudError, match="NaN or infinite"):
+        extract_centerline(xyz)
 
 
 # --------------------------------------------------------------------------- building blocks
