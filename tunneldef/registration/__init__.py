@@ -25,7 +25,13 @@ from ..frame import principal_frame
 from ..progress import ProgressCallback, report
 from .baselines import BASELINES
 from .centerline import axial_correction, fine_align, normals
-from .metrics import apply_transform, fitness, overlap_fraction, slice_fitness
+from .metrics import (
+    apply_transform,
+    fitness,
+    overlap_fraction,
+    rotation_error_deg,
+    slice_fitness,
+)
 from .refine import refine_stable
 
 __all__ = ["register", "Registration", "METHODS"]
@@ -245,7 +251,7 @@ def register(
                     cmp_cl.transformed(coarse),
                     floor_distance=rc.floor_ransac_distance,
                     angle_step_deg=rc.plan_angle_step_deg,
-                    axial_search=rc.axial_search,
+                    axial_search=rc.axial_search or 0.5 * (ref_cl.length + cmp_cl.length),
                     ref_normals=ref_n,
                     cmp_normals=cmp_n0 @ coarse[:3, :3].T,
                 )
@@ -316,16 +322,27 @@ def register(
         assert ref_cl is not None and cmp_n0 is not None
         t0 = time.perf_counter()
         cmp_l = apply_transform(local @ coarse, cmp_s)
-        local = refine_stable(ref_l, cmp_l, ref_cl, voxel=rc.voxel) @ local
+        corr = refine_stable(ref_l, cmp_l, ref_cl, voxel=rc.voxel)
+        cmp_r = apply_transform(corr, cmp_l)
         # the shell ICP holds the axis position loosely: put it back where the features say
-        if np.isfinite(info.get("axial_uncertainty", np.inf)):
-            cmp_l = apply_transform(local @ coarse, cmp_s)
-            corr, shift = axial_correction(
-                ref_l, ref_n, cmp_l, cmp_n0 @ (local @ coarse)[:3, :3].T, ref_cl
+        if info.get("axial_uncertainty", np.inf) < 1.0:
+            ax, shift = axial_correction(
+                ref_l, ref_n, cmp_r, cmp_n0 @ (corr @ local @ coarse)[:3, :3].T, ref_cl
             )
-            if shift.informative and info["axial_uncertainty"] < 1.0:
-                local = corr @ local
-                info["axial_uncertainty"] = shift.uncertainty
+            if shift.informative:
+                corr = ax @ corr
+                info["refine_axial_uncertainty"] = shift.uncertainty
+        # a correction within the noise would only move the epoch towards its deformed parts:
+        # apply it only when the centreline stages were measurably off
+        angle = rotation_error_deg(corr, np.eye(4))
+        move = float(np.sqrt(np.mean(np.sum((apply_transform(corr, cmp_l) - cmp_l) ** 2, 1))))
+        applied = angle > rc.refine_min_angle_deg or move > rc.refine_min_shift
+        info["refine"] = {"angle_deg": angle, "shift_m": move, "applied": bool(applied)}
+        if applied:
+            local = corr @ local
+            if "refine_axial_uncertainty" in info:
+                info["axial_uncertainty"] = info["refine_axial_uncertainty"]
+        info.pop("refine_axial_uncertainty", None)
         world_stages["refine"] = f_ref_inv @ local @ coarse
         timings["refine"] = time.perf_counter() - t0
     if method == "centerline" and info.get("axial_uncertainty", 0.0) > 1.0:
