@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from scipy.special import ndtri
 
-from tunneldef.deformation.robust import RobustDeformation, robust_deformation, voxel_cores
+from tunneldef.deformation.robust import (
+    _INNER_TRIM,
+    RobustDeformation,
+    robust_deformation,
+    voxel_cores,
+)
 from tunneldef.errors import ConfigError, InvalidCloudError
 from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
 
@@ -137,7 +143,8 @@ def _brute_core(ref, cmp_, res, q, *, ref_core, cmp_core, max_depth=0.3, radius_
         keep = np.abs(v - v.mean()) <= max(3 * v.std(ddof=1), 0.005)
         mu, sd = v[keep].mean(), v[keep].std(ddof=1)
         keep = np.abs(v - mu) <= max(3 * sd, 0.005)
-        keep &= v - mu >= -0.8416212335729143 * sd  # the innermost 20 %
+        if _INNER_TRIM > 0:
+            keep &= v - mu >= -ndtri(1.0 - _INNER_TRIM) * sd  # the innermost points
         mu2, sd2 = v[keep].mean(), v[keep].std(ddof=1)
         keep &= np.abs(v - mu2) <= max(3 * sd2, 0.005)
         out.append((v[keep].mean(), int(keep.sum())))
