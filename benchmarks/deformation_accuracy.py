@@ -27,7 +27,7 @@ Scores (mm unless stated), on points labelled shell by the truth:
 A last block times the robust estimator alone on a compared cloud of one million points.
 
 Run: ``python benchmarks/deformation_accuracy.py [--quick] [--no-cc] [--no-m3c2]
-[--speed-points 1000000] [--drift-points 600000]`` (default: about 3-5 minutes on 2 cores).
+[--speed-points 1000000] [--drift-points 600000]`` (default: about 2-3 minutes on 2 cores).
 """
 
 from __future__ import annotations
