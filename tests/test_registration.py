@@ -274,3 +274,28 @@ def test_fitness_and_to_dict():
     )
     for a, b in zip(direct, reg.slice_fitness, strict=True):
         assert a["fitness"] == pytest.approx(b["fitness"], abs=0.01)
+
+
+def test_refinement_repairs_a_bad_centreline_and_stays_off_otherwise():
+    pair = _pair(seed=10, yaw=150.0, length=24.0, density=80.0)
+    ref_cl, cmp_cl = _truth_centerlines(pair)
+    # good centrelines: the stages are within the noise, the refinement is not applied
+    reg = register(pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl)
+    assert reg.info["refine"]["applied"] is False
+    # a compared centreline pitched by 0.5 degrees about its middle: the longitudinal stage
+    # follows it, the shell refinement brings the epoch back
+    c = cmp_cl.points.mean(axis=0)
+    a = np.radians(0.5)
+    rot = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
+    bent = np.eye(4)
+    bent[:3, :3] = rot
+    bent[:3, 3] = c - rot @ c
+    bad = cmp_cl.transformed(bent)
+    off = register(
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=bad, config=NO_REFINE
+    )
+    fixed = register(pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=bad)
+    assert _errors(off, pair)[1] > 0.3
+    assert fixed.info["refine"]["applied"] is True
+    rms, rot_err = _errors(fixed, pair)
+    assert rms <= 0.01 and rot_err <= 0.05, (rms, rot_err)

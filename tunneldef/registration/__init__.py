@@ -335,7 +335,11 @@ def register(
         # a correction within the noise would only move the epoch towards its deformed parts:
         # apply it only when the centreline stages were measurably off
         angle = rotation_error_deg(corr, np.eye(4))
-        move = float(np.sqrt(np.mean(np.sum((apply_transform(corr, cmp_l) - cmp_l) ** 2, 1))))
+        # (the slide along the axis is left out: on a featureless stretch it is noise)
+        delta = apply_transform(corr, cmp_l) - cmp_l
+        tan = ref_cl.frame_at(ref_cl.project(cmp_l).chainage)[0]
+        delta -= np.einsum("ij,ij->i", delta, tan)[:, None] * tan
+        move = float(np.sqrt(np.mean(np.einsum("ij,ij->i", delta, delta))))
         applied = angle > rc.refine_min_angle_deg or move > rc.refine_min_shift
         info["refine"] = {"angle_deg": angle, "shift_m": move, "applied": bool(applied)}
         if applied:
