@@ -220,7 +220,12 @@ def detect(
     ----------
     Sensors 2024, 24, 2299, doi:10.3390/s24072299.
     """
-    from .deformation import compute_deformation, danger_zones, section_statistics
+    from .deformation import (
+        compute_deformation,
+        danger_threshold,
+        danger_zones,
+        section_statistics,
+    )
 
     config = config or Config()
     timings: dict[str, float] = {}
@@ -247,11 +252,9 @@ def detect(
     report(progress, "sections and danger zones", 0.0)
     dc = config.danger
     danger, zones = danger_zones(d, threshold=dc.threshold, rule=dc.rule,
-                                 min_zone_length=dc.min_zone_length)
-    threshold = float(dc.threshold)
-    if dc.rule == "mean":
-        shell = np.asarray(getattr(d, "shell", np.ones(len(d.deformation), bool)), bool)
-        threshold = float(np.nanmean(np.abs(d.deformation[shell])))
+                                 min_zone_length=dc.min_zone_length, merge_gap=dc.merge_gap,
+                                 neighbours=dc.neighbours, peak_points=dc.peak_points)
+    threshold = danger_threshold(d, threshold=dc.threshold, rule=dc.rule)
     sections = section_statistics(d, step=config.deformation.section_step,
                                   thickness=config.deformation.section_thickness)
     fields = d.fields()
