@@ -58,17 +58,21 @@ class Registration:
         ``{"chainage", "fitness", "points"}`` for five slices across the overlap (Table 2).
     axial_uncertainty : float
         One standard deviation of the position along the tunnel axis, metres (``inf`` when
-        the overlap has no feature along the axis; whole-cloud methods report NaN).
+        the overlap has no feature along the axis, i.e. the position along it is undetermined;
+        whole-cloud methods report NaN).
     overlap : float
         Fraction of compared points within the common stretch lying within 0.1 m of the
         reference after registration.
     stages : dict of str to ndarray (4, 4)
         Cumulative cmp -> ref transform after each stage (``coarse``, ``cross_section``,
-        ``longitudinal``, ``plan``, ``refine`` or the baseline's name).
+        ``longitudinal``, ``plan``, ``common_stretch`` (second pass over the stretch both
+        epochs cover), ``refine``; or ``coarse`` and the baseline's name).
     timings : dict of str to float
         Seconds per stage.
     info : dict
-        Diagnostics (floor tilt removed, axial shifts, candidate scores...).
+        Diagnostics: ``floor_tilt_deg``, ``axial_*`` shifts, ``direction_candidates`` (overlap
+        of each PCA sign candidate), ``direction_ambiguous`` (the tunnel looks the same both
+        ways round), ``refine`` (its correction and whether it was applied).
     """
 
     transform: np.ndarray
@@ -182,8 +186,11 @@ def register(
     Notes
     -----
     Steps: coarse PCA alignment for each sign candidate, then cross-section, longitudinal and
-    plan alignment (or a baseline), the candidate with the best overlap kept, an optional robust
-    refinement on the stable shell, then the checks of overlap and the fitness score.
+    plan alignment (or a baseline), the candidate with the best overlap kept, a second pass of
+    the three stages over the common stretch, an optional robust refinement on the stable shell
+    (applied only when it corrects more than the noise), then the checks of overlap and the
+    fitness score. A featureless overlap leaves the position along the axis undetermined: that
+    is logged as a warning and shows in ``axial_uncertainty`` (metres, large), not raised.
 
     References
     ----------
@@ -351,9 +358,9 @@ def register(
         timings["refine"] = time.perf_counter() - t0
     if method == "centerline" and info.get("axial_uncertainty", 0.0) > 1.0:
         logger.warning(
-            "the position along the axis is not determined (the overlap has no feature along "
-            "the tunnel; +-%.1f m)",
-            info["axial_uncertainty"],
+            "the position along the axis is not determined: the overlap has no feature along "
+            "the tunnel (equally good matches over +-%.1f m)",
+            info.get("axial_coarse_spread", float("nan")),
         )
     report(progress, "registration", 0.9)
 

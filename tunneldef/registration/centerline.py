@@ -386,7 +386,8 @@ def fine_align(
     # a featureless overlap matches equally well at many shifts: then the coarse spread, not
     # the local least-squares value, says how well the position along the axis is known
     ambiguous = spread > 1.0
-    out.axial_uncertainty = float(spread if ambiguous else shift.uncertainty)
+    # (beyond its basin the mismatch of a partial overlap is no measure: report it unknown)
+    out.axial_uncertainty = float("inf") if ambiguous else float(shift.uncertainty)
     out.axial_informative = bool(shift.informative and not ambiguous)
     out.transform = total
     return out
