@@ -119,6 +119,11 @@ class RegistrationConfig:
     max_points: int = _p(200_000, "ours: points per epoch used by the registration stages")
     min_overlap: float = _p(0.5, "ours: least fraction of common-stretch points within 0.1 m")
     min_overlap_length: float = _p(3.0, "ours: least common stretch of tunnel, m")
+    max_axial_uncertainty: float = _p(
+        0.5,
+        "ours: detect refuses a registration whose position along the tunnel is less certain "
+        "than this (a featureless overlap), m; inf accepts it",
+    )
 
 
 @dataclass(frozen=True)

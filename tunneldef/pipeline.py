@@ -20,7 +20,7 @@ from . import __version__
 from .centerline.curve import Centerline
 from .cloud import Cloud, check_points
 from .config import Config
-from .errors import EpochMismatchError
+from .errors import EpochMismatchError, RegistrationError
 from .frame import principal_frame
 from .progress import ProgressCallback, report
 
@@ -103,6 +103,14 @@ def register_epochs(
     reg = register(ref.xyz, cmp.xyz, method=config.registration.method,
                    ref_centerline=ref_ex, cmp_centerline=cmp_ex, config=config,
                    progress=_stage(progress, "registration"))
+    limit = config.registration.max_axial_uncertainty
+    if not reg.axial_uncertainty <= limit:
+        raise RegistrationError(
+            f"the position of the compared epoch along the tunnel is undetermined "
+            f"(+-{reg.axial_uncertainty:.2f} m > {limit} m): the common stretch has no features "
+            "along the axis (chamber, bend, width change, rough rock); set "
+            "registration.max_axial_uncertainty = inf to accept it anyway"
+        )
     return Registered(ref_ex, cmp_ex, reg)
 
 
