@@ -2,7 +2,7 @@
 
 It implements exactly the calls the plugin and scripts use, as documented by the
 CloudCompare-PythonRuntime bindings (``ccPointCloud``, ``ccScalarField``, ``ccPolyline``,
-``ccGLMatrix``, ``ccProgressDialog``, ``ccColorScalesManager``, ``RunInThread``,
+``ccGLMatrix``, ``ccProgressDialog``, ``ccColorScale``, ``ccColorScalesManager``, ``RunInThread``,
 ``GetInstance``/``GetCmdLineInstance``, ``PythonPluginInterface``, ``Action``) and nothing
 more: an attribute the real module lacks is not here either, and a call the adapter makes that
 is missing here fails the tests. It is NOT the real runtime: what passes here was verified
@@ -48,17 +48,66 @@ class Rgb:
 
 
 class ccColorScale:  # noqa: N801 - the binding's name
-    def __init__(self, name: str) -> None:
-        self.name = name
+    """``ccColorScale(name, uuid="")``; ``LoadFromXML`` gives a ``ccColorScale.Shared``.
+
+    In the runtime ``Shared`` (``QSharedPointer<ccColorScale>``, what ``setColorScale`` takes
+    and ``GetDefaultScale``/``LoadFromXML`` return) is opaque: no methods. The attributes of
+    :class:`Shared` here (name, uuid, relative, steps) are for the tests' eyes only; the
+    adapter must not use them.
+    """
+
+    class Shared:
+        def __init__(self, name: str, uuid: str, relative: bool, steps: list) -> None:
+            self.name, self.uuid, self.relative, self.steps = name, uuid, relative, steps
+
+    def __init__(self, name: str, uuid: str = "") -> None:
+        self.name, self.uuid = name, uuid
+
+    @staticmethod
+    def LoadFromXML(filename: str) -> ccColorScale.Shared:  # noqa: N802
+        """Parse CloudCompare's colour-scale XML (same layout as ``ccColorScale::saveAsXML``)."""
+        import xml.etree.ElementTree as ET
+
+        root = ET.parse(filename).getroot()
+        props = root.find("ColorScale/Properties")
+        steps = [
+            (int(s.get("r")), int(s.get("g")), int(s.get("b")), float(s.get("pos")))
+            for s in root.iter("step")
+        ]
+        return ccColorScale.Shared(
+            props.findtext("name"),
+            props.findtext("uuid"),
+            props.findtext("absolute", "0").strip() == "0",
+            steps,
+        )
+
+
+_BWR_STEPS = [(0, 0, 255, 0.0), (255, 255, 255, 0.5), (255, 0, 0, 1.0)]
 
 
 class ccColorScalesManager:  # noqa: N801
+    """Default scales by enum value; ``GetUniqueInstance().addScale`` keyed by UUID."""
+
     BWR = "BWR"
     BGYR = "BGYR"
+    _instance: ccColorScalesManager | None = None
+
+    def __init__(self) -> None:
+        self.scales: dict[str, ccColorScale.Shared] = {}
 
     @staticmethod
-    def GetDefaultScale(scale: str = "BGYR") -> ccColorScale:  # noqa: N802
-        return ccColorScale(scale)
+    def GetDefaultScale(scale: str = "BGYR") -> ccColorScale.Shared:  # noqa: N802
+        steps = _BWR_STEPS if scale == "BWR" else []
+        return ccColorScale.Shared(scale, scale, True, steps)
+
+    @staticmethod
+    def GetUniqueInstance() -> ccColorScalesManager:  # noqa: N802
+        if ccColorScalesManager._instance is None:
+            ccColorScalesManager._instance = ccColorScalesManager()
+        return ccColorScalesManager._instance
+
+    def addScale(self, scale: ccColorScale.Shared) -> None:  # noqa: N802
+        self.scales[scale.uuid] = scale
 
 
 class ccScalarField:  # noqa: N801
@@ -66,7 +115,7 @@ class ccScalarField:  # noqa: N801
         self._name = name
         self._values = np.zeros(n, dtype=np.float32)
         self._min = self._max = 0.0
-        self.color_scale: ccColorScale | None = None
+        self.color_scale: ccColorScale.Shared | None = None
         self.symmetrical = False
         self.saturation = [None, None]
         self.displayed = [None, None]
@@ -87,7 +136,7 @@ class ccScalarField:  # noqa: N801
     def toArray(self) -> np.ndarray:  # noqa: N802
         return self._values.copy()
 
-    def setColorScale(self, scale: ccColorScale) -> None:  # noqa: N802
+    def setColorScale(self, scale: ccColorScale.Shared) -> None:  # noqa: N802
         self.color_scale = scale
 
     def setSymmetricalScale(self, state: bool) -> None:  # noqa: N802
@@ -392,4 +441,5 @@ def install() -> types.ModuleType:
     mod.SCALE_GETTER_BUG = False
     mod._GUI = ccPythonInstance()
     mod._CMDLINE = None
+    mod.ccColorScalesManager._instance = None
     return mod

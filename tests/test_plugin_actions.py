@@ -170,8 +170,11 @@ def test_detect_writes_fields_and_adds_entities(pycc, plugin, core, pair):
     assert f["danger"].sum() == np.sum(np.abs(pair.deformation) > 0.02)
     np.testing.assert_array_equal(np.asarray(cmp_e.points()), before)  # original not moved
     sf = cmp_e.getScalarField(cmp_e.getCurrentDisplayedScalarFieldIndex())
-    assert sf.getName() == "deformation" and sf.symmetrical and sf.color_scale.name == "BWR"
-    assert sf.saturation == [0.0, made.limit]
+    assert sf.getName() == "deformation" and sf.symmetrical
+    assert sf.color_scale.name == adapter.SCALE_NAME and sf.color_scale.steps[0][:3] == (255, 0, 0)
+    assert sf.saturation == [0.0, made.limit] and made.colours == "red-white-blue"
+    reg_sf = made.registered.getScalarField(made.registered.getCurrentDisplayedScalarFieldIndex())
+    assert reg_sf.color_scale is sf.color_scale  # one scale for both clouds
 
     db = pycc.GetInstance().db
     assert db == [made.registered, made.ref_centerline, made.cmp_centerline]
@@ -366,7 +369,8 @@ def test_detect_action_with_real_core(pycc, plugin, monkeypatch):
     monkeypatch.setattr(pipeline, "detect", spy)
     pair = make_pair(
         PairSpec(
-            tunnel=TunnelSpec(length=20.0, density=60.0, outlier_fraction=0.0),
+            # a chamber: in a featureless drift the axial position is undetermined
+            tunnel=TunnelSpec(length=20.0, chamber=True, density=60.0, outlier_fraction=0.0),
             deformations=(DeformationSpec(kind="roof_sag", chainage=10.0, amplitude=0.05),),
             translation=(512000.0, 5611000.0, 310.0),  # survey-sized coordinates
             seed=0,
@@ -384,7 +388,10 @@ def test_detect_action_with_real_core(pycc, plugin, monkeypatch):
     np.testing.assert_array_equal(seen["ref"].xyz, ref_xyz)  # global coordinates in, exact
     np.testing.assert_array_equal(seen["cmp"].xyz, cmp_xyz)
     f = _fields(cmp_e)
-    for name in adapter.DEFORMATION_FIELDS:
+    extra = [n for n in adapter.OPTIONAL_FIELDS if n in res.cloud.fields]
+    assert {"significant", "lod95"} <= set(extra)  # the default (robust) estimator's fields
+    assert set(f) == set(adapter.DEFORMATION_FIELDS) | set(extra)
+    for name in (*adapter.DEFORMATION_FIELDS, *extra):
         np.testing.assert_allclose(
             f[name], np.asarray(res.cloud.fields[name], np.float32), atol=0, err_msg=name
         )

@@ -134,20 +134,60 @@ def test_symmetric_limit():
     assert symmetric_limit(np.full(5, np.nan)) == 1e-3
 
 
-def test_show_diverging_centres_on_zero(pycc, adapter):
+RED, WHITE, BLUE = (255, 0, 0), (255, 255, 255), (0, 0, 255)
+
+
+def test_red_white_blue_scale_from_xml(pycc, adapter):
+    scale = adapter.red_white_blue_scale()
+    assert isinstance(scale, pycc.ccColorScale.Shared)  # what setColorScale takes
+    assert scale.relative and scale.uuid == adapter.SCALE_UUID
+    assert [s[:3] for s in scale.steps] == [RED, WHITE, BLUE]  # low (into the tunnel) = red
+    assert [s[3] for s in scale.steps] == [0.0, 0.5, 1.0]
+    adapter.red_white_blue_scale()  # listed once in the scale manager, replaced on a re-run
+    assert list(pycc.ccColorScalesManager.GetUniqueInstance().scales) == [adapter.SCALE_UUID]
+
+
+def _deformation_entity(pycc, adapter):
     e = _entity(pycc, _survey_points(100))
     adapter.write_scalar_fields(
         e, {"chainage": np.arange(100.0), "deformation": np.linspace(-0.03, 0.01, 100)}
     )
-    assert adapter.show_diverging(e, "deformation", limit=0.03)
+    return e
+
+
+def test_show_diverging_centres_on_zero(pycc, adapter):
+    e = _deformation_entity(pycc, adapter)
+    scale = adapter.red_white_blue_scale()
+    assert adapter.show_diverging(e, "deformation", limit=0.03, scale=scale) == "red-white-blue"
     idx = e.getScalarFieldIndexByName("deformation")
     sf = e.getScalarField(idx)
     assert e.getCurrentDisplayedScalarFieldIndex() == idx and e.sf_shown and e.sf_scale_shown
-    assert sf.color_scale.name == "BWR" and sf.symmetrical
+    assert sf.color_scale is scale and sf.symmetrical
     assert sf.saturation == [0.0, 0.03]
     assert sf.displayed == [None, None]  # display range untouched: nothing gets hidden
     with pytest.raises(ValueError, match="no scalar field 'nope'"):
         adapter.show_diverging(e, "nope", limit=0.03)
+
+
+def test_show_diverging_falls_back_to_builtin_scale(pycc, adapter, monkeypatch):
+    monkeypatch.delattr(pycc.ccColorScale, "LoadFromXML")  # a runtime without it
+    e = _deformation_entity(pycc, adapter)
+    assert adapter.red_white_blue_scale() is None
+    shown = adapter.show_diverging(e, "deformation", limit=0.03, scale=None)
+    sf = e.getScalarField(e.getScalarFieldIndexByName("deformation"))
+    assert shown == "blue-white-red" and sf.color_scale.name == "BWR" and sf.symmetrical
+    made = adapter.DetectEntities(None, None, None, limit=0.03, colours=shown)
+    assert made.legend().startswith("colour scale: blue = into the tunnel")
+    monkeypatch.delattr(pycc.ccScalarField, "setColorScale")
+    assert adapter.show_diverging(e, "deformation", limit=0.03) == "default"
+
+
+def test_scale_load_failure_falls_back(pycc, adapter, monkeypatch):
+    def broken(filename):
+        raise RuntimeError("cannot parse")
+
+    monkeypatch.setattr(pycc.ccColorScale, "LoadFromXML", staticmethod(broken))
+    assert adapter.red_white_blue_scale() is None
 
 
 def test_make_point_cloud_inherits_shift(pycc, adapter):
@@ -207,8 +247,15 @@ def test_config_from_params(adapter):
     cfg = adapter.config_from_params(p)
     assert cfg.danger.threshold == 0.02 and cfg.deformation.k == 5
     assert cfg.deformation.method == "robust"
-    d = adapter.DetectParams.from_config()
-    assert (d.threshold, d.k, d.method, d.swap) == (0.05, 3, "knn", False)  # Config defaults
+    d, c = adapter.DetectParams.from_config(), Config()
+    assert (d.threshold, d.k, d.method, d.swap) == (
+        c.danger.threshold,
+        c.deformation.k,
+        c.deformation.method,
+        False,
+    )
+    assert d.method == "robust"  # the project default estimator
+    assert adapter.DetectParams() == d  # plain defaults follow Config too
 
 
 def test_progress_bridge_updates_and_cancels(pycc, adapter):

@@ -172,12 +172,13 @@ def test_dialog_states_reference_and_swaps(monkeypatch):
         assert "epoch B" in w.labels[0].text and "epoch A" in w.labels[1].text
         w.spins[0].setValue(0.025)
         w.ints[0].setValue(6)
+        assert w.combos[0].currentText() == "robust"  # Config().deformation.method
         w.combos[0].setCurrentIndex(1)
         w.checks[0].setChecked(True)
 
     monkeypatch.setattr(dialog, "qt_widgets", lambda: FakeQt(user))
     p = dialog.ask_detect_params("epoch A", "epoch B", DetectParams(threshold=0.05, k=3))
-    assert p == DetectParams(swap=True, threshold=0.025, k=6, method="robust", move_original=True)
+    assert p == DetectParams(swap=True, threshold=0.025, k=6, method="knn", move_original=True)
 
 
 def test_dialog_cancel_returns_none(monkeypatch):

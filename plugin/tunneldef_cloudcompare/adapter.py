@@ -8,7 +8,8 @@ Everything CloudCompare-specific that the plugin and the scripts share lives her
 * reading points with the ``points()`` fallback (some runtime builds return N identical rows:
   then each point is read with ``getPoint(i)``), :func:`read_points`.
 * writing scalar fields, replacing same-named ones (:func:`write_scalar_fields`), and showing
-  ``deformation`` on a diverging colour scale centred on 0 (:func:`show_diverging`).
+  ``deformation`` on a Red>White>Blue scale centred on 0, red = into the tunnel
+  (:func:`red_white_blue_scale`, :func:`show_diverging`).
 * new entities (clouds, polylines) that inherit the shift/scale of an existing one.
 * the three jobs as three steps each: read (main thread) -> compute (worker thread, pure
   numpy, never touches an entity) -> apply (main thread: fields, new entities).
@@ -23,6 +24,8 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import logging
+import os
+import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -48,6 +51,10 @@ __all__ = [
     "point_clouds",
     "write_scalar_fields",
     "symmetric_limit",
+    "SCALE_NAME",
+    "SCALE_UUID",
+    "color_scale_xml",
+    "red_white_blue_scale",
     "show_diverging",
     "make_point_cloud",
     "make_polyline",
@@ -90,6 +97,13 @@ def _pycc() -> Any:
 # --------------------------------------------------------------------------- parameters
 
 
+def _config_default(section: str, name: str) -> Any:
+    """A default of :class:`tunneldef.config.Config` (imported only when needed)."""
+    from tunneldef.config import Config
+
+    return getattr(getattr(Config(), section), name)
+
+
 @dataclass(frozen=True)
 class DetectParams:
     """What the "Detect deformation" dialog asks.
@@ -102,17 +116,21 @@ class DetectParams:
     threshold : float
         Danger threshold on |deformation|, metres (``Config.danger.threshold``).
     k : int
-        Nearest neighbours of the KNN estimator (``Config.deformation.k``, paper §4.3).
+        Nearest neighbours of the ``knn`` estimator only (``Config.deformation.k``, paper
+        §4.3); ``robust`` ignores it.
     method : str
-        Deformation estimator, ``"knn"`` (paper) or ``"robust"``.
+        Deformation estimator, ``"robust"`` (local surface, per-point level of detection) or
+        ``"knn"`` (the paper's KNN centroid).
+
+    Every default is the :class:`tunneldef.config.Config` default.
     move_original : bool
         Also move the original compared cloud into the reference frame (default: leave it).
     """
 
     swap: bool = False
-    threshold: float = 0.05
-    k: int = 3
-    method: str = "knn"
+    threshold: float = field(default_factory=lambda: float(_config_default("danger", "threshold")))
+    k: int = field(default_factory=lambda: int(_config_default("deformation", "k")))
+    method: str = field(default_factory=lambda: str(_config_default("deformation", "method")))
     move_original: bool = False
 
     @classmethod
@@ -361,19 +379,92 @@ def _try(obj: Any, method: str, *args: Any) -> bool:
     return True
 
 
-def show_diverging(entity: Any, name: str, *, limit: float) -> bool:
-    """Display scalar field ``name`` with CloudCompare's Blue>White>Red scale centred on 0.
+#: Name and fixed identity of the plugin's colour scale (a re-run replaces it, never duplicates).
+SCALE_NAME = "tunneldef deformation (red = into the tunnel)"
+SCALE_UUID = "{5b7c2f4e-1d0a-4f3e-9a61-7e2d8c3b9f02}"
 
-    Negative values (surface moved into the tunnel) are blue, positive red, white at 0, and
-    colours saturate symmetrically at ``±limit`` metres (``setSymmetricalScale``, saturation
-    0..limit on |value|). The display range is left at the field's min..max: CloudCompare
+#: What :func:`show_diverging` could set up (the plugin prints the matching legend).
+SCALE_RED_IN = "red-white-blue"
+SCALE_BLUE_IN = "blue-white-red"
+SCALE_DEFAULT = "default"
+
+
+def color_scale_xml(*, name: str = SCALE_NAME, uuid: str = SCALE_UUID) -> str:
+    """CloudCompare colour-scale XML: a *relative* Red>White>Blue scale.
+
+    Red at the low end (negative deformation: the surface moved into the tunnel), white in the
+    middle, blue at the high end (outward). Relative, so that CloudCompare's symmetrical-scale
+    and saturation settings centre it on 0 (an absolute scale would switch them off).
+    """
+    return f"""<?xml version="1.0" encoding="UTF-8"?>
+<CloudCompare>
+    <ColorScale version="1">
+        <Properties>
+            <name>{name}</name>
+            <uuid>{uuid}</uuid>
+            <absolute>0</absolute>
+        </Properties>
+        <Data>
+            <step r="255" g="0" b="0" pos="0"/>
+            <step r="255" g="255" b="255" pos="0.5"/>
+            <step r="0" g="0" b="255" pos="1"/>
+        </Data>
+    </ColorScale>
+</CloudCompare>
+"""
+
+
+def red_white_blue_scale() -> Any:
+    """The plugin's Red>White>Blue colour scale, or None if this runtime cannot build one.
+
+    The runtime binds ``ccColorScale.Shared`` (what ``ccScalarField.setColorScale`` takes) as
+    an opaque type: a scale built step by step in Python cannot be handed to a scalar field,
+    but ``ccColorScale.LoadFromXML`` returns one. The XML (:func:`color_scale_xml`) is written
+    to a temporary file and loaded; the scale is also registered with
+    ``ccColorScalesManager.GetUniqueInstance().addScale`` (same UUID every time, so a re-run
+    replaces it) so that it is listed in the scalar field's properties.
+    """
+    pycc = _pycc()
+    load = getattr(getattr(pycc, "ccColorScale", None), "LoadFromXML", None)
+    if load is None:
+        log.info("this runtime has no ccColorScale.LoadFromXML; using the built-in scale")
+        return None
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "tunneldef_deformation_scale.xml")
+            with open(path, "w", encoding="utf-8") as fh:
+                fh.write(color_scale_xml())
+            scale = load(path)
+    except Exception as exc:  # noqa: BLE001 - any runtime failure: fall back to built-in
+        log.warning("could not build the Red>White>Blue scale (%s); using the built-in one", exc)
+        return None
+    if scale is None:
+        return None
+    manager = getattr(pycc, "ccColorScalesManager", None)
+    if manager is not None and hasattr(manager, "GetUniqueInstance"):
+        try:
+            _try(manager.GetUniqueInstance(), "addScale", scale)
+        except Exception as exc:  # noqa: BLE001 - listing the scale is a convenience only
+            log.debug("addScale failed: %s", exc)
+    return scale
+
+
+def show_diverging(entity: Any, name: str, *, limit: float, scale: Any = None) -> str:
+    """Display scalar field ``name`` on a diverging scale centred on 0.
+
+    With ``scale`` (from :func:`red_white_blue_scale`): negative values (surface moved into
+    the tunnel) red, white at 0, positive blue, the project's convention. Without it,
+    CloudCompare's built-in Blue>White>Red scale (colours the other way round). Either way
+    ``setSymmetricalScale(True)`` and saturation 0..``limit`` on |value|, so colours saturate
+    at ``±limit`` metres. The display range is left at the field's min..max: CloudCompare
     hides values outside it, and the largest changes must stay visible. Each call is skipped
     if the runtime lacks it.
 
     Returns
     -------
-    bool
-        True if the diverging scale could be set (False: the field shows with the default).
+    str
+        ``"red-white-blue"`` (``scale`` set), ``"blue-white-red"`` (built-in scale set) or
+        ``"default"`` (no scale could be set; CloudCompare's default scale shows).
     """
     pycc = _pycc()
     idx = _sf_index(entity, name)
@@ -382,16 +473,20 @@ def show_diverging(entity: Any, name: str, *, limit: float) -> bool:
     entity.setCurrentDisplayedScalarField(idx)
     sf = entity.getScalarField(idx)
     sf.computeMinAndMax()
-    scaled = False
-    manager = getattr(pycc, "ccColorScalesManager", None)
-    if manager is not None and hasattr(manager, "BWR"):
-        scaled = _try(sf, "setColorScale", manager.GetDefaultScale(manager.BWR))
+    shown = SCALE_DEFAULT
+    if scale is not None and _try(sf, "setColorScale", scale):
+        shown = SCALE_RED_IN
+    else:
+        manager = getattr(pycc, "ccColorScalesManager", None)
+        if manager is not None and hasattr(manager, "BWR"):
+            if _try(sf, "setColorScale", manager.GetDefaultScale(manager.BWR)):
+                shown = SCALE_BLUE_IN
     _try(sf, "setSymmetricalScale", True)
     _try(sf, "setSaturationStart", 0.0)
     _try(sf, "setSaturationStop", float(limit))
     entity.showSF(True)
     _try(entity, "showSFColorsScale", True)
-    return scaled
+    return shown
 
 
 # --------------------------------------------------------------------------- new entities
@@ -569,6 +664,16 @@ class DetectEntities:
     cmp_centerline: Any
     keep_alive: list[Any] = field(default_factory=list)
     limit: float = 0.0
+    colours: str = SCALE_RED_IN
+
+    def legend(self) -> str:
+        """One line saying what the colours mean, for the console."""
+        ends = {
+            SCALE_RED_IN: "red = into the tunnel, white = 0, blue = outward",
+            SCALE_BLUE_IN: "blue = into the tunnel, white = 0, red = outward (built-in scale; "
+            "this runtime cannot load the Red>White>Blue one)",
+        }.get(self.colours, "CloudCompare's default scale (no diverging scale available)")
+        return f"colour scale: {ends}, saturated at ±{self.limit * 1000:.0f} mm"
 
     def new_entities(self) -> list[Any]:
         return [self.registered, self.ref_centerline, self.cmp_centerline]
@@ -585,20 +690,22 @@ def apply_detect(
     """Main-thread part of "Detect deformation": fields, colours and new entities.
 
     Writes the result fields onto ``cmp_entity`` (same points, same order; same-named fields
-    replaced), shows ``deformation`` on a diverging scale, builds a registered copy of the
-    compared cloud (in the reference frame, reference shift/scale, with the fields) and both
-    centrelines as polylines. ``cmp_entity``'s points move only if ``move_original``.
+    replaced), shows ``deformation`` on a diverging scale (red = into the tunnel), builds a
+    registered copy of the compared cloud (in the reference frame, reference shift/scale, with
+    the fields) and both centrelines as polylines. ``cmp_entity``'s points move only if
+    ``move_original``.
     """
     fields = result_fields(result.cloud)
     write_scalar_fields(cmp_entity, fields)
     limit = symmetric_limit(fields["deformation"], threshold=threshold)
-    show_diverging(cmp_entity, "deformation", limit=limit)
+    scale = red_white_blue_scale()
+    colours = show_diverging(cmp_entity, "deformation", limit=limit, scale=scale)
 
     base = _name(cmp_entity)
     registered = make_point_cloud(
         result.cloud.xyz, like=ref_entity, name=f"{base} (registered)", fields=fields
     )
-    show_diverging(registered, "deformation", limit=limit)
+    show_diverging(registered, "deformation", limit=limit, scale=scale)
     ref_line, ref_v = make_polyline(
         result.ref_centerline.points,
         like=ref_entity,
@@ -613,7 +720,7 @@ def apply_detect(
     )
     if move_original:
         move_entity(cmp_entity, result.transform)
-    return DetectEntities(registered, ref_line, cmp_line, [ref_v, cmp_v], limit)
+    return DetectEntities(registered, ref_line, cmp_line, [ref_v, cmp_v], limit, colours)
 
 
 # --------------------------------------------------------------------------- centreline

@@ -19,8 +19,9 @@ log = logging.getLogger(__name__)
 
 __all__ = ["qt_widgets", "ask_detect_params", "show_message", "METHODS"]
 
-#: Deformation estimators offered in the dialog (``Config.deformation.method``).
-METHODS = ("knn", "robust")
+#: Deformation estimators offered in the dialog (``Config.deformation.method``): ``robust``
+#: (local surface, per-point level of detection; the default) and ``knn`` (paper §3.3.1).
+METHODS = ("robust", "knn")
 
 
 def qt_widgets() -> Any:
@@ -108,7 +109,7 @@ def _qt_dialog(qw: Any, first: str, second: str, params: DetectParams) -> Detect
     k = qw.QSpinBox()
     k.setRange(1, 100)
     k.setValue(params.k)
-    form.addRow("k nearest neighbours:", k)
+    form.addRow("k nearest neighbours (knn only):", k)
 
     method = qw.QComboBox()
     method.addItems(list(METHODS))

@@ -140,10 +140,7 @@ def detect_deformation(params: DetectParams | None = None, *, ask: bool = True) 
                 f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in stats.items()
             )
         )
-    _console(
-        f"[tunneldef] colour scale: blue = into the tunnel, red = outward, "
-        f"saturated at ±{made.limit * 1000:.0f} mm"
-    )
+    _console(f"[tunneldef] {made.legend()}")
     return made
 
 
