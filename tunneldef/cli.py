@@ -305,7 +305,7 @@ def _log_result(summary: dict[str, Any]) -> None:
     for z in zones[:10]:
         log.info("  chainage %7.2f-%7.2f m  %-5s peak %+.1f mm at %.2f m (%d points)",
                  z["start"], z["end"], z.get("surface", ""), 1e3 * z["peak"],
-                 z.get("peak_chainage", float("nan")), z.get("count", 0))
+                 z.get("peak_chainage", float("nan")), z.get("n_points", 0))
     if len(zones) > 10:
         log.info("  ... %d more in the summary", len(zones) - 10)
 
