@@ -25,7 +25,7 @@ Steps
            -C_EXPORT_FMT ASC -PREC 6 -ADD_HEADER -SAVE_CLOUDS FILE OUT.asc
 
    giving ``OUT.bin`` (CloudCompare's own format: all fields, ``deformation`` active on a
-   Blue>White>Red scale saturated at +-limit), ``OUT_rgb.ply`` (the same colours baked into
+   Red>White>Blue scale saturated at +-limit), ``OUT_rgb.ply`` (the same colours baked into
    RGB, for any viewer) and ``OUT.asc`` (text, header line with the field names).
 
 Notes (verified with CloudCompare 2.11.3): ``-SET_ACTIVE_SF`` takes an index, not a name; the
@@ -34,7 +34,8 @@ normals (CloudCompare loads every such property as a scalar field, ``scalar_`` p
 removed). ``-SF_COLOR_SCALE`` reads a colour-scale XML file; an *absolute* scale from -limit
 to +limit gives a diverging scale centred on 0 with symmetric saturation. ``-GLOBAL_SHIFT
 AUTO`` keeps survey coordinates exact (without it CloudCompare stores them in float32).
-Blue = surface moved into the tunnel (negative), red = outward.
+Red = surface moved into the tunnel (negative: roof sag, wall bulge, floor heave), white = 0,
+blue = outward: the project's convention (report figures, matplotlib ``RdBu``).
 """
 
 from __future__ import annotations
@@ -87,7 +88,10 @@ def _ply_header(path: str | os.PathLike) -> list[str]:
 
 
 def color_scale_xml(limit: float, *, name: str = "tunneldef deformation") -> str:
-    """A CloudCompare colour-scale XML: absolute Blue>White>Red from -limit to +limit (m)."""
+    """A CloudCompare colour-scale XML: absolute Red>White>Blue from -limit to +limit (m).
+
+    Red at -limit (into the tunnel), white at 0, blue at +limit (outward).
+    """
     return f"""<?xml version="1.0" encoding="UTF-8"?>
 <CloudCompare>
     <ColorScale version="1">
@@ -99,9 +103,9 @@ def color_scale_xml(limit: float, *, name: str = "tunneldef deformation") -> str
             <range>{2 * limit:.9g}</range>
         </Properties>
         <Data>
-            <step r="0" g="0" b="255" pos="0"/>
+            <step r="255" g="0" b="0" pos="0"/>
             <step r="255" g="255" b="255" pos="0.5"/>
-            <step r="255" g="0" b="0" pos="1"/>
+            <step r="0" g="0" b="255" pos="1"/>
         </Data>
     </ColorScale>
 </CloudCompare>
@@ -191,7 +195,7 @@ def run_cloudcompare(
             + proc.stdout[-2000:]
             + proc.stderr[-2000:]
         )
-    print(f"colour scale: blue = into the tunnel, red = outward, saturated at +-{limit:.3f} m")
+    print(f"colour scale: red = into the tunnel, blue = outward, saturated at +-{limit:.3f} m")
     return outputs
 
 

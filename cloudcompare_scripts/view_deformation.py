@@ -7,10 +7,11 @@ Usage
     python view_deformation.py OUT.ply --png view.png  # no window: a PNG (matplotlib)
     python view_deformation.py OUT.ply --limit 0.03 --field deformation_vertical
 
-Colours: blue = the surface moved into the tunnel (negative: roof sag, wall bulge, floor
-heave), white = no change, red = outward; saturated symmetrically at +-limit (default: the
-98th percentile of |deformation|, at least 1 mm). The same Blue>White>Red convention as the
-CloudCompare plugin. Points without a value (NaN) are grey.
+Colours: red = the surface moved into the tunnel (negative: roof sag, wall bulge, floor
+heave), white = no change, blue = outward; saturated symmetrically at +-limit (default: the
+98th percentile of |deformation|, at least 1 mm). matplotlib's ``RdBu``, as in the report
+figures; the CloudCompare plugin and ``batch_detect.py`` use the same Red>White>Blue order.
+Points without a value (NaN) are grey.
 
 Without a display (or with ``--png``) the PNG shows the tunnel surface unrolled around its
 main axis (along x angle: roof, walls, floor) and a side view, with the colour bar; it needs
@@ -27,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 _GREY = np.array([0.6, 0.6, 0.6])
+#: Diverging colour map: red = negative (into the tunnel), blue = positive (report figures).
+CMAP = "RdBu"
 
 
 def load(
@@ -53,11 +56,12 @@ def symmetric_limit(values: np.ndarray, threshold: float = 0.0) -> float:
 
 
 def colours(values: np.ndarray, limit: float) -> np.ndarray:
-    """RGB in [0, 1], shape (N, 3): matplotlib's ``bwr`` over [-limit, +limit], NaN grey."""
+    """RGB in [0, 1], shape (N, 3): matplotlib's ``RdBu`` over [-limit, +limit] (red =
+    negative = into the tunnel), NaN grey."""
     from matplotlib import colormaps
 
     t = np.clip((np.asarray(values, dtype=np.float64) / limit + 1.0) / 2.0, 0.0, 1.0)
-    rgb = colormaps["bwr"](np.nan_to_num(t, nan=0.5))[:, :3]
+    rgb = colormaps[CMAP](np.nan_to_num(t, nan=0.5))[:, :3]
     rgb[~np.isfinite(values)] = _GREY
     return rgb
 
@@ -153,9 +157,9 @@ def save_png(
     ax2.set_xlabel("chainage (m)" if chainage is not None else "along the tunnel (m)")
     ax2.set_ylabel("height (m)")
     ax2.set_title("side view")
-    sm = plt.cm.ScalarMappable(norm=Normalize(-limit * 1000, limit * 1000), cmap="bwr")
+    sm = plt.cm.ScalarMappable(norm=Normalize(-limit * 1000, limit * 1000), cmap=CMAP)
     cb = fig.colorbar(sm, ax=[ax1, ax2], shrink=0.9)
-    cb.set_label("mm  (blue: into the tunnel, red: outward)")
+    cb.set_label("mm  (red: into the tunnel, blue: outward)")
     out = Path(out)
     fig.savefig(out, dpi=dpi)
     plt.close(fig)

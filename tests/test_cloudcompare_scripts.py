@@ -81,9 +81,10 @@ def _result_cloud(n=3000, seed=0):
 def test_viewer_colours_are_diverging():
     view = _script("view_deformation.py")
     rgb = view.colours(np.array([-0.1, 0.0, 0.1, np.nan]), 0.05)
-    np.testing.assert_allclose(rgb[0], [0, 0, 1], atol=0.01)  # into the tunnel: blue
-    np.testing.assert_allclose(rgb[1], [1, 1, 1], atol=0.01)  # no change: white
-    np.testing.assert_allclose(rgb[2], [1, 0, 0], atol=0.01)  # outward: red
+    # matplotlib RdBu ends (as the report figures): dark red, near-white, dark blue
+    np.testing.assert_allclose(rgb[0], [0.404, 0.0, 0.122], atol=0.01)  # into the tunnel: red
+    np.testing.assert_allclose(rgb[1], [0.969, 0.969, 0.969], atol=0.01)  # no change: white
+    np.testing.assert_allclose(rgb[2], [0.020, 0.188, 0.380], atol=0.01)  # outward: blue
     np.testing.assert_allclose(rgb[3], [0.6, 0.6, 0.6])
 
 
@@ -218,7 +219,8 @@ def test_scalar_field_index_and_colour_scale(tmp_path):
     props = root.find("ColorScale/Properties")
     assert float(props.findtext("minValue")) == -0.025 and float(props.findtext("range")) == 0.05
     steps = [(s.get("r"), s.get("g"), s.get("b"), float(s.get("pos"))) for s in root.iter("step")]
-    assert steps == [("0", "0", "255", 0.0), ("255", "255", "255", 0.5), ("255", "0", "0", 1.0)]
+    # red at -limit (into the tunnel), white at 0, blue at +limit (outward)
+    assert steps == [("255", "0", "0", 0.0), ("255", "255", "255", 0.5), ("0", "0", "255", 1.0)]
 
 
 # --------------------------------------------------------------------------- real CloudCompare
@@ -288,7 +290,7 @@ def test_batch_colours_with_cloudcompare(tmp_path):
     d = np.asarray(v["scalar_deformation"])
     rgb = np.stack([np.asarray(v[c]) for c in ("red", "green", "blue")], axis=1).astype(int)
     blue, red = [0, 0, 255], [255, 0, 0]
-    assert np.abs(rgb[d < -0.02] - blue).max() <= 2 and np.abs(rgb[d > 0.02] - red).max() <= 2
+    assert np.abs(rgb[d < -0.02] - red).max() <= 2 and np.abs(rgb[d > 0.02] - blue).max() <= 2
     near0 = np.abs(d) < 0.0005
     assert near0.any() and rgb[near0].min() >= 240  # white at 0
     assert np.abs(np.stack([v["x"], v["y"], v["z"]], 1) - cloud.xyz).max() < 2e-5
@@ -415,6 +417,34 @@ json.dump({{"argv": args}}, open(summary, "w"))
 
 
 @needs_cc
+def test_plugin_scale_xml_loads_in_cloudcompare(tmp_path):
+    """The plugin's relative Red>White>Blue XML through CloudCompare 2.11's own
+    ``ccColorScale::LoadFromXML`` (``-SF_COLOR_SCALE``, the call the plugin makes through the
+    runtime): minimum red, maximum blue, white half-way."""
+    from plyfile import PlyData
+    from tunneldef_cloudcompare.adapter import color_scale_xml
+
+    cloud = _result_cloud(2000)
+    cloud.fields["deformation"] = np.linspace(-0.04, 0.04, 2000).astype(np.float32)
+    _write(tmp_path / "r.ply", cloud)
+    (tmp_path / "scale.xml").write_text(color_scale_xml(), encoding="utf-8")
+    sf = _script("batch_detect.py").scalar_field_index(tmp_path / "r.ply", "deformation")
+    _cloudcompare(
+        "-AUTO_SAVE", "OFF", "-O", "-GLOBAL_SHIFT", "AUTO", "r.ply",
+        "-SET_ACTIVE_SF", str(sf), "-SF_COLOR_SCALE", "scale.xml",
+        "-SF_CONVERT_TO_RGB", "FALSE",
+        "-C_EXPORT_FMT", "PLY", "-SAVE_CLOUDS", "FILE", "rgb.ply",
+        cwd=tmp_path,
+    )  # fmt: skip
+    v = PlyData.read(str(tmp_path / "rgb.ply"))["vertex"]
+    d = np.asarray(v["scalar_deformation"])
+    rgb = np.stack([np.asarray(v[c]) for c in ("red", "green", "blue")], axis=1).astype(int)
+    assert np.abs(rgb[np.argmin(d)] - [255, 0, 0]).max() <= 2  # into the tunnel: red
+    assert np.abs(rgb[np.argmax(d)] - [0, 0, 255]).max() <= 2  # outward: blue
+    assert rgb[np.argmin(np.abs(d))].min() >= 240  # white at 0 (symmetric data)
+
+
+@needs_cc
 def test_batch_full_chain(tmp_path, monkeypatch):
     """REF CMP -> `tunneldef detect` (a stub with the CLI's interface: the real pipeline runs
     in the plugin tests) -> CloudCompare colours and exports."""
@@ -462,8 +492,8 @@ def test_batch_full_chain(tmp_path, monkeypatch):
     header, data = _read_asc(tmp_path / "out.asc")
     assert {"deformation", "chainage", "danger"} <= set(header) and len(data) == 2000
     d = data[:, header.index("deformation")]
-    blue = data[:, header.index("B")] - data[:, header.index("R")]
-    assert np.all(blue[d < -0.035] > 200)  # the -4 cm roof band is blue
+    red = data[:, header.index("R")] - data[:, header.index("B")]
+    assert np.all(red[d < -0.035] > 200)  # the -4 cm roof band (into the tunnel) is red
     with pytest.raises(SystemExit):
         batch.main([str(tmp_path / "ref.ply"), str(tmp_path / "cmp.ply"), "-o", "x.las"])
 
