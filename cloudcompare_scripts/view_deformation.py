@@ -24,6 +24,7 @@ import argparse
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -125,11 +126,13 @@ def save_png(
     title: str = "deformation",
     chainage: np.ndarray | None = None,
     rgb: np.ndarray | None = None,
+    cmap: Any = CMAP,
     max_points: int = 80_000,
     dpi: int = 80,
 ) -> Path:
     """The tunnel surface unrolled (along x angle) and a side view, coloured by ``values``
-    (or by the given ``rgb`` (N, 3) in [0, 1], e.g. colours computed by CloudCompare)."""
+    (or by the given ``rgb`` (N, 3) in [0, 1], e.g. colours computed by CloudCompare; then
+    pass the matching ``cmap`` (name or Colormap) for the colour bar)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -157,7 +160,7 @@ def save_png(
     ax2.set_xlabel("chainage (m)" if chainage is not None else "along the tunnel (m)")
     ax2.set_ylabel("height (m)")
     ax2.set_title("side view")
-    sm = plt.cm.ScalarMappable(norm=Normalize(-limit * 1000, limit * 1000), cmap=CMAP)
+    sm = plt.cm.ScalarMappable(norm=Normalize(-limit * 1000, limit * 1000), cmap=cmap)
     cb = fig.colorbar(sm, ax=[ax1, ax2], shrink=0.9)
     cb.set_label("mm  (red: into the tunnel, blue: outward)")
     out = Path(out)
