@@ -9,7 +9,7 @@ reference (earlier epoch) FIRST, then run this file. It does what the menu actio
 From CloudCompare's command line (the Python runtime plugin must be installed)::
 
     CloudCompare -SILENT -O ref.las -O cmp.las -PYTHON_SCRIPT detect_in_cloudcompare.py \
-        [OUT.ply] [--threshold 0.05] [--k 3] [--method knn]
+        [OUT.ply] [--threshold 0.05] [--method robust|knn] [--k 3]
 
 The FIRST loaded cloud is the reference. Put ``-PYTHON_SCRIPT`` last: the runtime hands every
 argument after the script name to the script. OUT (default: ``<compared>_deformation.ply``
@@ -35,8 +35,10 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="detect_in_cloudcompare.py")
     ap.add_argument("output", nargs="?", help="result file (default <compared>_deformation.ply)")
     ap.add_argument("--threshold", type=float, help="danger threshold |deformation|, m")
-    ap.add_argument("--k", type=int, help="nearest neighbours of the KNN estimator")
-    ap.add_argument("--method", choices=["knn", "robust"], help="deformation estimator")
+    ap.add_argument("--k", type=int, help="nearest neighbours, --method knn only (paper: 3)")
+    ap.add_argument(
+        "--method", choices=["robust", "knn"], help="deformation estimator (default: Config's)"
+    )
     args, unknown = ap.parse_known_args(argv)
     if unknown:
         print(f"[tunneldef] ignoring arguments {unknown}")
