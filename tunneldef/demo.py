@@ -36,6 +36,7 @@ def demo_spec(*, seed: int = 0, quick: bool = False) -> Any:
             density=150.0 if quick else 400.0,
             noise_sigma=0.015,
             chamber=True,
+            chamber_chainage=0.65 * length,
             equipment=True,
             conveyor=True,
             roughness=0.02,

@@ -119,9 +119,13 @@ def plot_cross_section(
     fig, ax = plt.subplots(figsize=(7, 5), constrained_layout=True)
     ax.scatter(-pr_r.lateral[mr], pr_r.vertical[mr], s=1, c="0.6", label="reference")
     d = deformation[mc] * 1e3
-    lim = 1e3 * limit if limit else (float(np.nanpercentile(np.abs(d), 99)) if d.size else 1.0)
-    sc = ax.scatter(-pr_c.lateral[mc], pr_c.vertical[mc], s=2, c=d, cmap="RdBu", vmin=-lim,
-                    vmax=lim, label="compared (registered)")
+    ok = np.isfinite(d)
+    lim = 1e3 * limit if limit else (float(np.nanpercentile(np.abs(d), 99)) if ok.any() else 1.0)
+    if (~ok).any():
+        ax.scatter(-pr_c.lateral[mc][~ok], pr_c.vertical[mc][~ok], s=1, c="k",
+                   label="compared, no value (no reference surface)")
+    sc = ax.scatter(-pr_c.lateral[mc][ok], pr_c.vertical[mc][ok], s=2, c=d[ok], cmap="RdBu",
+                    vmin=-lim, vmax=lim, label="compared (registered)")
     fig.colorbar(sc, ax=ax, label="deformation (mm)")
     ax.set_aspect("equal")
     ax.set_xlabel("across the tunnel, looking along increasing chainage (m; right +)")
