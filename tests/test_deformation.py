@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+from functools import partial
 
 import numpy as np
 import pytest
@@ -11,9 +12,11 @@ from tunneldef.centerline.curve import Centerline, Projection
 from tunneldef.config import Config
 from tunneldef.deformation import (
     DeformationResult,
-    compute_deformation,
     danger_zones,
     section_statistics,
+)
+from tunneldef.deformation import (
+    compute_deformation as _compute_deformation,
 )
 from tunneldef.deformation.knn import (
     counterpart_projection,
@@ -24,6 +27,9 @@ from tunneldef.deformation.knn import (
 )
 from tunneldef.errors import ConfigError, InvalidCloudError
 from tunneldef.synth import DeformationSpec, PairSpec, SectionSpec, TunnelSpec, make_pair
+
+# these tests check the paper's method (§3.3): KNN centroid, unless a test says otherwise
+compute_deformation = partial(_compute_deformation, method="knn")
 
 AMP = 0.03
 SAG, BULGE, HEAVE, OUTWARD = 6.0, 11.0, 15.0, 6.0  # chainages of the synthetic deformations
@@ -290,9 +296,10 @@ def test_k_from_config_and_override(pair):
     importlib.util.find_spec("tunneldef.deformation.shell") is None,
     reason="tunneldef.deformation.shell not available",
 )
-def test_coal_on_the_conveyor_is_change_but_not_shell(pair):
+@pytest.mark.parametrize("method", ["knn", "robust"])
+def test_coal_on_the_conveyor_is_change_but_not_shell(pair, method):
     t = pair.truth
-    d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline)
+    d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, method=method)
     coal = t.label == 2
     assert coal.sum() > 500
     assert np.mean(np.abs(d.deformation[coal]) > 0.02) > 0.5  # reported as change...

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import csv
 import math
+from functools import partial
 
 import numpy as np
 import pytest
 
-from tunneldef.deformation import DeformationResult, compute_deformation
+from tunneldef.deformation import DeformationResult
+from tunneldef.deformation import compute_deformation as _compute_deformation
 from tunneldef.deformation.sections import (
     FLOOR,
     LEFT_WALL,
@@ -21,6 +23,9 @@ from tunneldef.deformation.sections import (
 )
 from tunneldef.errors import ConfigError, InvalidCloudError
 from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
+
+# these tests check the paper's method (§3.3): KNN centroid, unless a test says otherwise
+compute_deformation = partial(_compute_deformation, method="knn")
 
 
 def _rectangle(rng, n, *, width=5.8, height=2.86, length=10.0, centre=(0.0, 0.0)):

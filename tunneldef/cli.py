@@ -47,14 +47,24 @@ class _StageProgress:
                            quarter * 25)
 
 
-def _setup_logging(quiet: bool, verbose: bool) -> None:
+def _setup_logging(quiet: bool, verbose: bool) -> tuple[logging.Handler, int, bool]:
+    """Send tunneldef's log to stderr; returns what :func:`_restore_logging` needs."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(message)s"))
     root = logging.getLogger("tunneldef")
-    root.handlers[:] = [h for h in root.handlers if isinstance(h, logging.NullHandler)]
+    saved = (handler, root.level, root.propagate)
     root.addHandler(handler)
     root.setLevel(logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO)
     root.propagate = False
+    return saved
+
+
+def _restore_logging(saved: tuple[logging.Handler, int, bool]) -> None:
+    handler, level, propagate = saved
+    root = logging.getLogger("tunneldef")
+    root.removeHandler(handler)
+    root.setLevel(level)
+    root.propagate = propagate
 
 
 def _existing_file(path: str) -> Path:
@@ -448,7 +458,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.quiet = getattr(args, "quiet", False)
     args.verbose = getattr(args, "verbose", False)
-    _setup_logging(args.quiet, args.verbose)
+    saved = _setup_logging(args.quiet, args.verbose)
     try:
         return int(args.func(args) or 0)
     except TunnelDefError as exc:
@@ -463,6 +473,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("tunneldef: interrupted", file=sys.stderr)
         return 130
+    finally:
+        _restore_logging(saved)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from dataclasses import fields as dataclass_fields
 
 import numpy as np
 
-from ..centerline.curve import Centerline
+from ..centerline.curve import Centerline, Projection
 from ..cloud import check_points
 from ..config import Config
 from ..errors import ConfigError, InvalidCloudError
@@ -137,6 +138,27 @@ def _coverage(ref: np.ndarray, centerline: Centerline, workers: int) -> tuple[fl
     return float(lo), float(hi)
 
 
+def _knn_deformation(
+    ref: np.ndarray,
+    cmp: np.ndarray,
+    centerline: Centerline,
+    pp: Projection,
+    *,
+    k: int,
+    workers: int,
+    progress: ProgressCallback | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The paper's KNN-centroid deformation (§3.3.1) and its Manhattan split (§3.3.2).
+
+    Returns signed deformation, horizontal, vertical and the unsigned distance, each (N,).
+    """
+    counterpart, dist = knn_counterparts(ref, cmp, k=k, workers=workers, progress=progress)
+    pc = counterpart_projection(centerline, cmp, pp, counterpart)
+    horizontal, vertical = manhattan_split(pp, pc)
+    sign = np.where(horizontal + vertical < 0.0, -1.0, 1.0)
+    return sign * dist, horizontal, vertical, dist
+
+
 def _robust_kwargs(cfg: object) -> dict[str, object]:
     """Robust-estimator parameters present in the deformation config section."""
     names = ("normal_radius", "cylinder_radius", "max_depth", "core_spacing")
@@ -202,10 +224,11 @@ def compute_deformation(
     vertical = change of |vertical| (Manhattan split, Fig. 11), (4) deformation = distance to
     the counterpart with the sign of ``horizontal + vertical`` (closer to the centreline than
     the counterpart: negative). ``robust``: the estimator's signed normal distance, split into
-    horizontal and vertical parts along its normal. Both: points beyond the chainage range of
-    the reference points (their 0.05-99.95 % quantiles) get NaN, and so do (``knn``) points
-    farther than ``config.deformation.max_distance`` from their counterpart (holes in the
-    reference).
+    horizontal and vertical parts along its normal, on shell points; points off the shell
+    (equipment, coal, people) get the ``knn`` value, so that moved clutter still shows.
+    Both: points beyond the chainage range of the reference points (their 0.05-99.95 %
+    quantiles) get NaN, and so do (``knn``) points farther than
+    ``config.deformation.max_distance`` from their counterpart (holes in the reference).
     """
     config = config or Config()
     dcfg = config.deformation
@@ -238,13 +261,9 @@ def compute_deformation(
         pp = centerline.project(cmp, workers=workers)
         significant = lod95 = None
         if method == "knn":
-            counterpart, dist = knn_counterparts(
-                ref, cmp, k=k, workers=workers, progress=sub(0.1, 0.85)
+            deformation, horizontal, vertical, dist = _knn_deformation(
+                ref, cmp, centerline, pp, k=k, workers=workers, progress=sub(0.1, 0.85)
             )
-            pc = counterpart_projection(centerline, cmp, pp, counterpart)
-            horizontal, vertical = manhattan_split(pp, pc)
-            sign = np.where(horizontal + vertical < 0.0, -1.0, 1.0)
-            deformation = sign * dist
         else:
             from .robust import robust_deformation
 
@@ -268,6 +287,22 @@ def compute_deformation(
             vertical = deformation * np.einsum("ij,ij->i", nrm, ver_dir) * np.sign(pp.vertical)
             significant = np.asarray(r.significant, dtype=bool)
             lod95 = np.asarray(r.lod95, dtype=np.float64)
+            clutter = ~shell_mask
+            if clutter.any():
+                # equipment, coal, people have no shell surface to measure along: they get the
+                # paper's KNN-centroid change, so that moved clutter still shows (never as
+                # danger, which is judged on the shell)
+                sub_pp = Projection(
+                    *(getattr(pp, f.name)[clutter] for f in dataclass_fields(Projection))
+                )
+                dc, hc, vc, distc = _knn_deformation(
+                    ref, cmp[clutter], centerline, sub_pp, k=dcfg.k, workers=workers
+                )
+                far = distc > dcfg.max_distance
+                dc[far] = hc[far] = vc[far] = np.nan
+                deformation[clutter], horizontal[clutter], vertical[clutter] = dc, hc, vc
+                significant[clutter] = False
+                lod95[clutter] = np.nan
             k = None
         # no counterpart beyond the reference's ends or farther than max_distance (holes)
         lo, hi = _coverage(ref, centerline, workers)
