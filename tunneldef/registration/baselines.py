@@ -33,6 +33,30 @@ def _criteria(iterations: int) -> o3d.pipelines.registration.ICPConvergenceCrite
     )
 
 
+def _open3d_icp(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    init: np.ndarray,
+    kind: str,
+    *,
+    voxel: float,
+    max_distance: float,
+    iterations: int,
+) -> np.ndarray:
+    """One Open3D ICP variant ("point", "plane" or "generalized") from ``init``."""
+    dst = _pcd(ref_xyz, voxel)
+    if kind == "plane":
+        dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
+    run = _reg.registration_generalized_icp if kind == "generalized" else _reg.registration_icp
+    estimation = {
+        "point": _reg.TransformationEstimationPointToPoint,
+        "plane": _reg.TransformationEstimationPointToPlane,
+        "generalized": _reg.TransformationEstimationForGeneralizedICP,
+    }[kind]()
+    res = run(_pcd(cmp_xyz, voxel), dst, max_distance, init, estimation, _criteria(iterations))
+    return np.asarray(res.transformation)
+
+
 def icp_point(
     ref_xyz: np.ndarray,
     cmp_xyz: np.ndarray,
@@ -43,15 +67,8 @@ def icp_point(
     iterations: int = 60,
 ) -> np.ndarray:
     """Open3D point-to-point ICP; returns the (4, 4) cmp -> ref transform (metres)."""
-    res = _reg.registration_icp(
-        _pcd(cmp_xyz, voxel),
-        _pcd(ref_xyz, voxel),
-        max_distance,
-        init,
-        _reg.TransformationEstimationPointToPoint(),
-        _criteria(iterations),
-    )
-    return np.asarray(res.transformation)
+    return _open3d_icp(ref_xyz, cmp_xyz, init, "point", voxel=voxel, max_distance=max_distance,
+                       iterations=iterations)
 
 
 def icp_plane(
@@ -64,17 +81,8 @@ def icp_plane(
     iterations: int = 60,
 ) -> np.ndarray:
     """Open3D point-to-plane ICP; returns the (4, 4) cmp -> ref transform (metres)."""
-    dst = _pcd(ref_xyz, voxel)
-    dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
-    res = _reg.registration_icp(
-        _pcd(cmp_xyz, voxel),
-        dst,
-        max_distance,
-        init,
-        _reg.TransformationEstimationPointToPlane(),
-        _criteria(iterations),
-    )
-    return np.asarray(res.transformation)
+    return _open3d_icp(ref_xyz, cmp_xyz, init, "plane", voxel=voxel, max_distance=max_distance,
+                       iterations=iterations)
 
 
 def gicp(
@@ -87,15 +95,8 @@ def gicp(
     iterations: int = 60,
 ) -> np.ndarray:
     """Open3D generalized ICP; returns the (4, 4) cmp -> ref transform (metres)."""
-    res = _reg.registration_generalized_icp(
-        _pcd(cmp_xyz, voxel),
-        _pcd(ref_xyz, voxel),
-        max_distance,
-        init,
-        _reg.TransformationEstimationForGeneralizedICP(),
-        _criteria(iterations),
-    )
-    return np.asarray(res.transformation)
+    return _open3d_icp(ref_xyz, cmp_xyz, init, "generalized", voxel=voxel,
+                       max_distance=max_distance, iterations=iterations)
 
 
 def _ndt_cells(xyz: np.ndarray, cell: float, min_points: int = 6):
