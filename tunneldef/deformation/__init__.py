@@ -224,8 +224,9 @@ def compute_deformation(
     vertical = change of |vertical| (Manhattan split, Fig. 11), (4) deformation = distance to
     the counterpart with the sign of ``horizontal + vertical`` (closer to the centreline than
     the counterpart: negative). ``robust``: the estimator's signed normal distance, split into
-    horizontal and vertical parts along its normal, on shell points; points off the shell
-    (equipment, coal, people) get the ``knn`` value, so that moved clutter still shows.
+    horizontal and vertical parts along its normal; points it cannot measure because they lie
+    off the shell surface (equipment, coal, people) get the ``knn`` value, so that moved
+    clutter still shows.
     Both: points beyond the chainage range of the reference points (their 0.05-99.95 %
     quantiles) get NaN, and so do (``knn``) points farther than
     ``config.deformation.max_distance`` from their counterpart (holes in the reference).
@@ -287,11 +288,12 @@ def compute_deformation(
             vertical = deformation * np.einsum("ij,ij->i", nrm, ver_dir) * np.sign(pp.vertical)
             significant = np.asarray(r.significant, dtype=bool)
             lod95 = np.asarray(r.lod95, dtype=np.float64)
-            clutter = ~shell_mask
+            clutter = ~shell_mask & ~np.isfinite(deformation)
             if clutter.any():
-                # equipment, coal, people have no shell surface to measure along: they get the
-                # paper's KNN-centroid change, so that moved clutter still shows (never as
-                # danger, which is judged on the shell)
+                # equipment, coal, people away from the shell have no surface to measure along:
+                # they get the paper's KNN-centroid change, so that moved clutter still shows
+                # (never as danger, which is judged on the shell); points off the shell mask
+                # but on the shell surface keep the estimator's value
                 sub_pp = Projection(
                     *(getattr(pp, f.name)[clutter] for f in dataclass_fields(Projection))
                 )
