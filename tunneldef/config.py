@@ -117,6 +117,11 @@ class RegistrationConfig:
         "wider searches find spurious partial overlaps on featureless stretches)",
     )
     max_points: int = _p(200_000, "ours: points per epoch used by the registration stages")
+    max_points_per_metre: int = _p(
+        1500,
+        "ours: more points for long tunnels (350 m: 525 k); with 200 k over 350 m the "
+        "along-axis images were too sparse to fix the shift (benchmarks/detect_speed.py)",
+    )
     min_overlap: float = _p(0.5, "ours: least fraction of common-stretch points within 0.1 m")
     min_overlap_length: float = _p(3.0, "ours: least common stretch of tunnel, m")
     max_axial_uncertainty: float = _p(

@@ -19,9 +19,9 @@ from scipy.spatial import cKDTree
 
 from ..centerline.curve import Centerline
 from ..cloud import check_points
-from ..config import Config
+from ..config import Config, RegistrationConfig
 from ..errors import NotATunnelError, RegistrationError
-from ..frame import principal_frame
+from ..frame import TunnelFrame, principal_frame
 from ..progress import ProgressCallback, report
 from .baselines import BASELINES
 from .centerline import axial_correction, fine_align, normals
@@ -214,8 +214,8 @@ def register(
         raise RegistrationError(f"no common tunnel axis: {exc}") from None
     f_ref, f_cmp = ref_frame.matrix, cmp_frame.matrix
     f_ref_inv = np.linalg.inv(f_ref)
-    ref_l = apply_transform(f_ref, _subsample(ref_xyz, rc.max_points, 1))
-    cmp_s = _subsample(cmp_xyz, rc.max_points, 2)
+    ref_l = apply_transform(f_ref, _subsample(ref_xyz, _point_budget(ref_frame, rc), 1))
+    cmp_s = _subsample(cmp_xyz, _point_budget(cmp_frame, rc), 2)
     ref_tree = cKDTree(ref_l)
 
     ref_cl = cmp_cl = None
@@ -382,6 +382,14 @@ def register(
     return Registration(
         transform, method, fit, per_slice, axial, overlap, world_stages, timings, info
     )
+
+
+def _point_budget(frame: TunnelFrame, rc: RegistrationConfig) -> int:
+    """Points of an epoch the stages use: ``max_points``, or more for long tunnels
+    (``max_points_per_metre`` times the length, estimated as sqrt(12 var) along the axis), so
+    that the unrolled section images keep enough points per cell to find the along-axis shift."""
+    length = float(np.sqrt(12.0 * frame.variances[0]))
+    return max(int(rc.max_points), int(rc.max_points_per_metre * length))
 
 
 def _best_flip(
