@@ -199,6 +199,27 @@ def test_axial_shift_featureless_is_reported_unknown():
     assert spread > 2.0
 
 
+@pytest.mark.parametrize("seed", [7, 12])
+def test_rough_rock_alone_fixes_the_axial_position(seed):
+    # no chamber, only 3 cm rock relief along the axis, the compared stretch 1 m further on:
+    # points near the reference's end and points chosen by their (noisy) normals once biased
+    # the slide by 18-28 mm on these seeds while claiming +-1.5 mm
+    tunnel = TunnelSpec(length=24.0, density=120.0, equipment=True, roughness=0.03)
+    pair = make_pair(
+        PairSpec(tunnel=tunnel, deformations=SAG, cmp_shift=1.0, yaw_deg=123.0, seed=seed)
+    )
+    reg = register(pair.ref.xyz, pair.cmp.xyz)
+    err, angle = _errors(reg, pair)
+    assert err < 0.006 and angle < 0.05
+    # the claimed along-axis uncertainty is not an order of magnitude too small
+    t = pair.truth.transform
+    x = pair.cmp.xyz
+    diff = (x @ reg.transform[:3, :3].T + reg.transform[:3, 3]) - (x @ t[:3, :3].T + t[:3, 3])
+    axis = pair.truth.centerline.frame_at(np.array([12.0]))[0][0]
+    axial = abs(float(diff.mean(axis=0) @ axis))
+    assert axial < 3 * reg.axial_uncertainty, (axial, reg.axial_uncertainty)
+
+
 @pytest.mark.parametrize("method", ["icp_point", "icp_plane", "gicp", "ndt"])
 def test_baselines_improve_on_the_coarse_start(method):
     pair = _pair(seed=8, yaw=75.0, length=20.0, density=60.0, cmp_shift=0.3)

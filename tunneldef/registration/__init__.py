@@ -235,10 +235,9 @@ def register(
         ref_cl = ref_cl.transformed(f_ref)
         timings["centerlines"] = time.perf_counter() - t0
 
-    ref_n = cmp_n0 = None
+    ref_n = None
     if method == "centerline":
         ref_n = normals(ref_l)
-        cmp_n0 = normals(cmp_s)
     flips = list(enumerate(_flips(rc.coarse_vertical)))
     if method != "centerline":
         # the baselines start from the coarse candidate a quick rough ICP likes best
@@ -260,7 +259,6 @@ def register(
                     angle_step_deg=rc.plan_angle_step_deg,
                     axial_search=rc.axial_search or 0.5 * (ref_cl.length + cmp_cl.length),
                     ref_normals=ref_n,
-                    cmp_normals=cmp_n0 @ coarse[:3, :3].T,
                 )
                 local, stages, info = fine.transform, fine.stages, dict(fine.info)
                 info["axial_uncertainty"] = fine.axial_uncertainty
@@ -298,7 +296,7 @@ def register(
 
     if method == "centerline":
         # second pass over the common stretch only, from where the first pass left off
-        assert ref_cl is not None and cmp_cl is not None and cmp_n0 is not None
+        assert ref_cl is not None and cmp_cl is not None
         t0 = time.perf_counter()
         cmp_l = apply_transform(local @ coarse, cmp_s)
         s = ref_cl.project(cmp_l[:: max(1, len(cmp_l) // 20000)]).chainage
@@ -316,7 +314,6 @@ def register(
                 angle_step_deg=rc.plan_angle_step_deg,
                 axial_search=1.0,
                 ref_normals=ref_n,
-                cmp_normals=cmp_n0 @ (local @ coarse)[:3, :3].T,
                 common=common,
             )
             local = fine.transform @ local
@@ -326,16 +323,14 @@ def register(
         timings["common_stretch"] = time.perf_counter() - t0
 
     if method == "centerline" and rc.refine:
-        assert ref_cl is not None and cmp_n0 is not None
+        assert ref_cl is not None and ref_n is not None
         t0 = time.perf_counter()
         cmp_l = apply_transform(local @ coarse, cmp_s)
         corr = refine_stable(ref_l, cmp_l, ref_cl, voxel=rc.voxel)
         cmp_r = apply_transform(corr, cmp_l)
         # the shell ICP holds the axis position loosely: put it back where the features say
         if info.get("axial_uncertainty", np.inf) < 1.0:
-            ax, shift = axial_correction(
-                ref_l, ref_n, cmp_r, cmp_n0 @ (corr @ local @ coarse)[:3, :3].T, ref_cl
-            )
+            ax, shift = axial_correction(ref_l, ref_n, cmp_r, ref_cl)
             if shift.informative:
                 corr = ax @ corr
                 info["refine_axial_uncertainty"] = shift.uncertainty

@@ -28,7 +28,7 @@ logger = logging.getLogger(__name__)
 
 _N_ANGLES = 48  # 7.5 degree sectors around the centreline
 _MIN_CELL_POINTS = 3
-_SIGMA_FLOOR = 0.001  # m
+_SIGMA_FLOOR = 0.002  # m
 
 
 @dataclass(frozen=True)
@@ -265,6 +265,7 @@ def fine_shift(
                 sigma, float(np.sqrt((g - 1) / g * np.sum((d_minus - d_minus.mean()) ** 2)))
             )
     # plus a floor for what neither estimate sees: the sampling of the reference surface and
-    # the centreline's shape bias the solution by up to ~1-2 mm (synth benchmarks)
+    # the centreline's shape bias the solution by a few mm (ten synthetic rough-rock pairs at
+    # 120 points/m^2: RMS axial error 2.2 mm where both estimates above said 1.2 mm)
     sigma = float(np.hypot(sigma, _SIGMA_FLOOR))
     return AxialShift(delta, sigma, sigma < 0.1, int((w > 0).sum()))

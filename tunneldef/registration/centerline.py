@@ -251,7 +251,6 @@ def fine_align(
     angle_step_deg: float,
     axial_search: float,
     ref_normals: np.ndarray | None = None,
-    cmp_normals: np.ndarray | None = None,
     common: tuple[float, float] | None = None,
     plan_iterations: int = 2,
 ) -> FineResult:
@@ -269,8 +268,8 @@ def fine_align(
         Smallest rotation step of the plan alignment, degrees.
     axial_search : float
         Largest along-axis shift searched, metres.
-    ref_normals, cmp_normals : ndarray, shape (N, 3) and (M, 3), optional
-        Unit normals of the points (computed when not given).
+    ref_normals : ndarray, shape (N, 3), optional
+        Unit normals of the reference points (computed when not given).
     common : (float, float), optional
         Chainage range of the reference centreline both epochs cover. When the compared epoch
         is already close (a second pass), the floors and the centreline lines are taken over
@@ -360,17 +359,13 @@ def fine_align(
     out.info["axial_coarse_shift"] = coarse
     out.info["axial_coarse_spread"] = spread
     ref_n = ref_normals if ref_normals is not None else normals(ref_xyz)
-    cmp_n = cmp_normals if cmp_normals is not None else normals(cmp_xyz)
     tree = cKDTree(ref_xyz)
     shift = None
     for _ in range(plan_iterations):
         moved = _apply(total, cmp_xyz)
         pm = ref_cl.project(moved)
         tan = ref_cl.frame_at(pm.chainage)[0]
-        # only surfaces facing along the axis tell where along the axis the epoch is
-        sel = np.abs(np.einsum("ij,ij->i", cmp_n @ total[:3, :3].T, tan)) > 0.25
-        if sel.sum() < 200:
-            sel[:] = True
+        sel = _axial_sample(pm.chainage, ref_cl.length, common)
         shift = fine_shift(
             ref_xyz,
             ref_n,
@@ -393,27 +388,54 @@ def fine_align(
     return out
 
 
+_AXIAL_END_MARGIN = 0.5  # m
+_AXIAL_MAX_POINTS = 150_000
+
+
+def _axial_sample(
+    chainage: np.ndarray, length: float, common: tuple[float, float] | None
+) -> np.ndarray:
+    """Compared points the along-axis alignment uses: a random sample of at most 150 000
+    points lying over the reference, at least 0.5 m inside its ends (and inside ``common``).
+
+    Near an end of the reference the nearest neighbours are all on one side and the normals
+    are fitted to half-neighbourhoods; those correspondences pull the shift by centimetres
+    (synthetic rough-rock pairs). Choosing points by their normals (those facing along the axis)
+    is worse still on rough rock: at survey density most axial normal components are noise, and
+    the selected points bias the shift by up to ~4 cm. A random sample keeps the estimate
+    unbiased; points with no axial surface component simply carry no weight in it.
+    """
+    lo, hi = _AXIAL_END_MARGIN, length - _AXIAL_END_MARGIN
+    if common is not None:
+        lo, hi = max(lo, common[0]), min(hi, common[1])
+    sel = (chainage > lo) & (chainage < hi)
+    if sel.sum() < 200:
+        sel = np.ones(chainage.shape[0], dtype=bool)
+    idx = np.flatnonzero(sel)
+    if idx.size > _AXIAL_MAX_POINTS:
+        keep = np.random.default_rng(0).choice(idx, _AXIAL_MAX_POINTS, replace=False)
+        sel = np.zeros(chainage.shape[0], dtype=bool)
+        sel[keep] = True
+    return sel
+
+
 def axial_correction(
     ref_xyz: np.ndarray,
     ref_normals: np.ndarray,
     cmp_xyz: np.ndarray,
-    cmp_normals: np.ndarray,
     ref_cl: Centerline,
 ) -> tuple[np.ndarray, AxialShift]:
     """A last along-axis correction (4, 4) and its uncertainty, by the 1-DOF point-to-plane
-    alignment of :func:`.axial.fine_shift` (compared points and normals already in place)."""
+    alignment of :func:`.axial.fine_shift` (compared points already in place)."""
     pm = ref_cl.project(cmp_xyz)
     tan = ref_cl.frame_at(pm.chainage)[0]
-    sel = np.abs(np.einsum("ij,ij->i", cmp_normals, tan)) > 0.25
-    if sel.sum() < 200:
-        sel[:] = True
+    sel = _axial_sample(pm.chainage, ref_cl.length, None)
     shift = fine_shift(
         ref_xyz,
         ref_normals,
         cmp_xyz[sel],
         tan[sel],
         blocks=np.floor(pm.chainage[sel]).astype(np.int64),
-        kernels=(0.05,),
     )
     t = tan[sel].mean(axis=0)
     m = _translation(shift.shift * t / np.linalg.norm(t))
