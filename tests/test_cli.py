@@ -76,7 +76,7 @@ def pair_files(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
     from tunneldef import synth
 
     spec = synth.PairSpec(
-        tunnel=synth.TunnelSpec(length=24.0, density=120.0, equipment=True, roughness=0.03),
+        tunnel=synth.TunnelSpec(length=24.0, density=300.0, equipment=True, roughness=0.03),
         deformations=(synth.DeformationSpec(kind="roof_sag", chainage=12.0, length=4.0,
                                             width=2.0, amplitude=0.04),),
         cmp_shift=1.0, yaw_deg=123.0, seed=7,
@@ -135,14 +135,17 @@ def test_detect_end_to_end_output_contract(
     t = np.array(s["transform_compared_to_reference"])
     moved = cmp.xyz @ t[:3, :3].T + t[:3, 3]
     np.testing.assert_allclose(res.xyz, moved, atol=1e-4)
-    # registration error against the true motion: centimetre level
+    # registration error against the true motion: millimetre level (rough rock fixes the
+    # position along the axis; 2.1 mm measured)
     err_rms = np.sqrt(np.mean(np.sum((res.xyz - pair.truth.cmp_xyz_in_ref) ** 2, axis=1)))
-    assert err_rms < 0.02
-    # the 40 mm roof sag is seen in its core, with the right sign
+    assert err_rms < 0.008
+    # the 40 mm roof sag is seen in its core, with the right sign, within 30 % (the cylinder
+    # average and the shell mask trim a narrow peak on rough rock: -29 mm of -37.5 measured)
     core = (pair.truth.displacement < -0.035) & (pair.truth.label == 0)
-    assert core.sum() > 20
+    assert core.sum() > 50
+    truth = float(np.median(pair.truth.displacement[core]))
     measured = float(np.median(res.fields["deformation"][core]))
-    assert -0.055 < measured < -0.025
+    assert 1.3 * truth < measured < 0.7 * truth, (measured, truth)
     flagged = res.fields["danger"][core].mean()
     assert flagged > 0.5, (flagged, measured, s["danger_zones"])
     assert sections.read_text().count("\n") > 10
