@@ -389,13 +389,13 @@ def fine_align(
 
 
 _AXIAL_END_MARGIN = 0.5  # m
-_AXIAL_MAX_POINTS = 150_000
+_AXIAL_MAX_POINTS = 60_000
 
 
 def _axial_sample(
     chainage: np.ndarray, length: float, common: tuple[float, float] | None
 ) -> np.ndarray:
-    """Compared points the along-axis alignment uses: a random sample of at most 150 000
+    """Compared points the along-axis alignment uses: a random sample of at most 60 000
     points lying over the reference, at least 0.5 m inside its ends (and inside ``common``).
 
     Near an end of the reference the nearest neighbours are all on one side and the normals
