@@ -89,7 +89,7 @@ def floor_plane(
     chainage_range: tuple[float, float] | None = None,
     seed: int = 0,
 ) -> tuple[np.ndarray, float, int]:
-    """Floor plane of one epoch: RANSAC (Open3D ``segment_plane``) refined by least squares.
+    """Floor plane of one epoch: seeded RANSAC refined by least squares.
 
     Parameters
     ----------
@@ -131,12 +131,7 @@ def floor_plane(
     rng = np.random.default_rng(seed)
     if pts.shape[0] > 60_000:
         pts = pts[rng.choice(pts.shape[0], 60_000, replace=False)]
-    o3d.utility.random.seed(seed)
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    model, idx = pc.segment_plane(distance, 3, 1000)
-    n = np.asarray(model[:3], dtype=np.float64)
-    n /= np.linalg.norm(n)
-    d = float(model[3]) / np.linalg.norm(np.asarray(model[:3]))
+    n, d, idx = _ransac_plane(pts, distance, 1000, rng)
     # least-squares refits on the points near the plane (tighter each time)
     for tol in (distance, distance / 2, distance / 2):
         r = pts @ n + d
@@ -155,6 +150,37 @@ def floor_plane(
             'levelled (set registration.coarse_vertical = "pca")'
         )
     return n, d, int(len(idx))
+
+
+def _ransac_plane(
+    pts: np.ndarray, distance: float, iterations: int, rng: np.random.Generator
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Plane with the most points within ``distance``: RANSAC on ``iterations`` random triplets.
+
+    Open3D's ``segment_plane`` is not reproducible with several threads even when seeded (its
+    multi-threaded sampler, Open3D issues #5647 and #7270), so the same epochs would register
+    differently from run to run; this one is vectorised numpy, seeded by ``rng``. Returns the
+    unit normal, the offset ``d`` of ``n . x + d = 0`` and the inlier indices.
+    """
+    c = pts.mean(axis=0)
+    q = pts - c
+    tri = q[rng.integers(0, len(q), size=(iterations, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12
+    n = n[ok] / norm[ok, None]
+    d = -np.einsum("ij,ij->i", n, tri[ok, 0])
+    best, best_count = 0, -1
+    for start in range(0, len(n), 100):  # 100 planes x N points at a time
+        counts = (np.abs(q @ n[start : start + 100].T + d[start : start + 100]) <= distance).sum(
+            axis=0
+        )
+        k = int(np.argmax(counts))
+        if counts[k] > best_count:
+            best, best_count = start + k, int(counts[k])
+    normal = n[best]
+    idx = np.flatnonzero(np.abs(q @ normal + d[best]) <= distance)
+    return normal, float(d[best] - normal @ c), idx
 
 
 def _line_xz(
