@@ -168,6 +168,8 @@ def _ransac_plane(
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     norm = np.linalg.norm(n, axis=1)
     ok = norm > 1e-12
+    if not ok.any():
+        raise RegistrationError("the floor points are collinear; no floor plane can be fitted")
     n = n[ok] / norm[ok, None]
     d = -np.einsum("ij,ij->i", n, tri[ok, 0])
     best, best_count = 0, -1
