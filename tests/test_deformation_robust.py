@@ -218,3 +218,22 @@ def test_errors():
         robust_deformation(ref, cmp_, line, ref_mask=np.ones(5, dtype=bool))
     with pytest.raises(InvalidCloudError, match="fewer than 3"):
         robust_deformation(ref, cmp_, line, ref_mask=np.zeros(len(ref), dtype=bool))
+
+
+def test_radius_index_finds_exactly_the_kd_tree_neighbours():
+    from tunneldef.deformation.robust import _RadiusIndex
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-3.0, 3.0, (20_000, 3))
+    centres = rng.uniform(-3.0, 3.0, (300, 3))
+    group, idx, d2 = _RadiusIndex(pts, 0.3).ball(centres, 0.45)  # a wider query than indexed
+    assert np.all(np.diff(group) >= 0)
+    np.testing.assert_allclose(d2, ((pts[idx] - centres[group]) ** 2).sum(axis=1), atol=1e-5)
+    lists = cKDTree(pts).query_ball_point(centres, 0.45)
+    for c in range(len(centres)):
+        # float32 coordinates: only points within a micrometre of the sphere may differ
+        got, want = set(idx[group == c]), set(lists[c])
+        edge = np.abs(np.linalg.norm(pts[list(got ^ want)] - centres[c], axis=1) - 0.45)
+        assert np.all(edge < 1e-5)
+    empty = _RadiusIndex(np.empty((0, 3)), 0.3).ball(centres, 0.3)
+    assert all(a.size == 0 for a in empty)

@@ -110,3 +110,15 @@ def test_errors():
         classify_shell(xyz[:, :2], line)
     with pytest.raises(InvalidCloudError, match="at least 1"):
         classify_shell(np.empty((0, 3)), line)
+
+
+def test_a_given_projection_gives_the_same_mask_and_is_checked():
+    pair = make_pair(PairSpec(tunnel=TunnelSpec(length=8.0, equipment=True, conveyor=True), seed=5))
+    tr = pair.truth
+    xyz = tr.cmp_xyz_in_ref
+    proj = tr.centerline.project(xyz)
+    np.testing.assert_array_equal(
+        classify_shell(xyz, tr.centerline, projection=proj), classify_shell(xyz, tr.centerline)
+    )
+    with pytest.raises(InvalidCloudError, match="projection"):
+        classify_shell(xyz[:-1], tr.centerline, projection=proj)

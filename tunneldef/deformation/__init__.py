@@ -117,23 +117,31 @@ class DeformationResult:
         return out
 
 
-def _shell_mask(xyz: np.ndarray, centerline: Centerline) -> np.ndarray | None:
+def _shell_mask(
+    xyz: np.ndarray, centerline: Centerline, projection: Projection | None = None
+) -> np.ndarray | None:
     """Shell mask from :mod:`tunneldef.deformation.shell`, or None where it is unavailable."""
     try:
         from .shell import classify_shell
     except ImportError:
         return None
-    return np.asarray(classify_shell(xyz, centerline), dtype=bool)
+    return np.asarray(classify_shell(xyz, centerline, projection=projection), dtype=bool)
 
 
 _COVERAGE_SAMPLE = 200_000
 _COVERAGE_QUANTILE = 0.0005
 
 
-def _coverage(ref: np.ndarray, centerline: Centerline, workers: int) -> tuple[float, float]:
-    """Chainage range covered by the reference points (a subsample; outliers ignored)."""
+def _coverage(
+    ref: np.ndarray, centerline: Centerline, workers: int, chainage: np.ndarray | None = None
+) -> tuple[float, float]:
+    """Chainage range covered by the reference points (a subsample; outliers ignored);
+    ``chainage`` is the reference points' chainage when it is already known."""
     step = max(ref.shape[0] // _COVERAGE_SAMPLE, 1)
-    s = centerline.project(ref[::step], workers=workers).chainage
+    if chainage is None:
+        s = centerline.project(ref[::step], workers=workers).chainage
+    else:
+        s = chainage[::step]
     lo, hi = np.quantile(s, [_COVERAGE_QUANTILE, 1.0 - _COVERAGE_QUANTILE])
     return float(lo), float(hi)
 
@@ -251,15 +259,16 @@ def compute_deformation(
 
     with timed_stage(logger, f"deformation ({method}) of {cmp.shape[0]} points"):
         report(progress, "deformation", 0.0)
+        pp = centerline.project(cmp, workers=workers)
         if shell is None:
-            shell_mask = _shell_mask(cmp, centerline)
+            shell_mask = _shell_mask(cmp, centerline, pp)
             if shell_mask is None:
                 logger.warning("shell classification unavailable; every point counts as shell")
                 shell_mask = np.ones(cmp.shape[0], dtype=bool)
         else:
             shell_mask = np.asarray(shell, dtype=bool)
         report(progress, "deformation", 0.1)
-        pp = centerline.project(cmp, workers=workers)
+        ref_chainage = None
         significant = lod95 = None
         if method == "knn":
             deformation, horizontal, vertical, dist = _knn_deformation(
@@ -268,11 +277,13 @@ def compute_deformation(
         else:
             from .robust import robust_deformation
 
+            ref_pp = centerline.project(ref, workers=workers)
+            ref_chainage = ref_pp.chainage
             r = robust_deformation(
                 ref,
                 cmp,
                 centerline,
-                ref_mask=_shell_mask(ref, centerline),
+                ref_mask=_shell_mask(ref, centerline, ref_pp),
                 cmp_mask=shell_mask,
                 registration_sigma=registration_sigma,
                 workers=workers,
@@ -307,7 +318,7 @@ def compute_deformation(
                 lod95[clutter] = np.nan
             k = None
         # no counterpart beyond the reference's ends or farther than max_distance (holes)
-        lo, hi = _coverage(ref, centerline, workers)
+        lo, hi = _coverage(ref, centerline, workers, ref_chainage)
         unmatched = (pp.chainage < lo) | (pp.chainage > hi)
         if method == "knn":
             unmatched |= dist > dcfg.max_distance

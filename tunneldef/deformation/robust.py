@@ -36,9 +36,10 @@ radial direction from the centreline. Corners: points whose core straddles two s
 (surface variation above 0.02) take the value of the nearest planar core whose plane passes
 closest to them.
 
-Everything is vectorised: neighbourhoods come from ``cKDTree.query_ball_point`` (unsorted,
-multi-threaded) on spatially sorted copies of the clouds, are flattened into one index array
-per chunk of cores, and every per-core statistic is a ``np.bincount`` over that flat array.
+Everything is vectorised: cylinder neighbourhoods come from Open3D's fixed-radius hash grid
+(``open3d.core.nns``, multi-threaded) on spatially sorted copies of the clouds as one flat
+index array per chunk of cores, and every per-core statistic is a ``np.bincount`` over that
+flat array.
 
 References
 ----------
@@ -49,7 +50,6 @@ Paper: Sensors 2024, 24, 2299, doi:10.3390/s24072299 (§3.3.1, Table 4, Table 5)
 
 from __future__ import annotations
 
-import itertools
 import logging
 from dataclasses import dataclass, field
 from typing import Any
@@ -178,14 +178,48 @@ def _voxel_order(xyz: np.ndarray, spacing: float) -> np.ndarray:
     return np.argsort((ijk[:, 2] * dims[1] + ijk[:, 1]) * dims[0] + ijk[:, 0], kind="stable")
 
 
-def _flat_ball(tree: cKDTree, centres: np.ndarray, radius: float, workers: int):
-    """Neighbours of each centre within ``radius`` as flat (group, index) arrays, plus the
-    count per centre (``group`` is sorted)."""
-    lists = tree.query_ball_point(centres, radius, workers=workers, return_sorted=False)
-    counts = np.fromiter(map(len, lists), dtype=np.intp, count=len(lists))
-    idx = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.intp, count=int(counts.sum()))
-    group = np.repeat(np.arange(len(lists), dtype=np.intp), counts)
-    return group, idx, counts
+class _RadiusIndex:
+    """Fixed-radius neighbour search: Open3D's hash grid (``open3d.core.nns``).
+
+    Multi-threaded, and it returns one flat index array per query batch: on a million points
+    about five times faster than ``cKDTree.query_ball_point`` and its per-centre Python lists.
+    Coordinates are float32, so they should be offsets from a local origin.
+    """
+
+    def __init__(self, pts: np.ndarray, radius: float) -> None:
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.pts = np.ascontiguousarray(pts, dtype=np.float32)
+        self._nns = None
+        if len(self.pts):
+            self._nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(self.pts))
+            if not self._nns.fixed_radius_index(float(radius)):
+                raise RuntimeError("Open3D could not build its fixed-radius neighbour index")
+
+    @property
+    def empty(self) -> bool:
+        return self._nns is None
+
+    def ball(self, centres: np.ndarray, radius: float):
+        """Points within ``radius`` of each centre: flat ``group`` (sorted centre index),
+        ``idx`` (point index) and ``d2`` (squared distance, float32) arrays."""
+        if self._nns is None or len(centres) == 0:
+            return np.empty(0, np.intp), np.empty(0, np.intp), np.empty(0, np.float32)
+        q = self._o3d.core.Tensor(np.ascontiguousarray(centres, dtype=np.float32))
+        idx, d2, splits = self._nns.fixed_radius_search(q, float(radius), sort=False)
+        counts = np.diff(splits.numpy())
+        group = np.repeat(np.arange(len(centres), dtype=np.intp), counts)
+        return group, idx.numpy().astype(np.intp, copy=False), d2.numpy()
+
+
+class _Epoch(_RadiusIndex):
+    """One epoch's points for the cylinder gathers, with the normal of each point's core
+    (cylinders keep only the points of their own surface)."""
+
+    def __init__(self, pts: np.ndarray, pt_normals: np.ndarray, radius: float) -> None:
+        super().__init__(pts, radius)
+        self.normals = np.ascontiguousarray(pt_normals, dtype=np.float32)
 
 
 def _voxel_normals(
@@ -220,30 +254,23 @@ def _voxel_normals(
         [np.bincount(inv, weights=rel[:, i] * rel[:, j], minlength=nv) for i, j in pairs], axis=1
     )
 
-    cijk = np.floor((cores - lo) / spacing).astype(np.int64)
-    ckey = cijk @ strides
-    reach = int(np.ceil(radius / spacing + 1.0))
-    rng = np.arange(-reach, reach + 1)
-    offsets = np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), axis=-1).reshape(-1, 3)
-    offsets = offsets[np.linalg.norm(offsets, axis=1) * spacing <= radius + 1.5 * spacing]
-    n_c = np.zeros(len(cores))
-    m1 = np.zeros((len(cores), 3))
-    m2 = np.zeros((len(cores), 6))
-    for off in offsets:
-        pos = np.searchsorted(keys, ckey + off @ strides)
-        pos = np.minimum(pos, nv - 1)
-        hit = keys[pos] == ckey + off @ strides
-        dv = centre[pos] - cores  # voxel centre relative to the core
-        hit &= np.einsum("ij,ij->i", dv, dv) <= (radius + 0.5 * spacing) ** 2
-        k, c_, a1, a2 = pos[hit], cnt[pos[hit]], s1[pos[hit]], s2[pos[hit]]
-        d = dv[hit]
-        n_c[hit] += c_
-        m1[hit] += a1 + c_[:, None] * d
-        for col, (i, j) in enumerate(pairs):
-            m2[hit, col] += (
-                a2[:, col] + a1[:, i] * d[:, j] + d[:, i] * a1[:, j] + c_ * d[:, i] * d[:, j]
-            )
-        del k
+    # voxels whose centre lies within radius + spacing / 2 of each core, as flat pairs
+    grid = _RadiusIndex(centre - lo, radius + 0.5 * spacing)
+    group, k, _ = grid.ball(cores - lo, radius + 0.5 * spacing)
+    d = centre[k] - cores[group]  # voxel centre relative to the core
+    c_, a1, a2 = cnt[k], s1[k], s2[k]
+    ncore = len(cores)
+    n_c = np.bincount(group, weights=c_, minlength=ncore)
+    m1 = np.stack(
+        [np.bincount(group, weights=a1[:, i] + c_ * d[:, i], minlength=ncore) for i in range(3)],
+        axis=1,
+    )
+    # second moments about the core: sum (r + d)_i (r + d)_j over the voxel's points
+    w2 = [
+        a2[:, col] + a1[:, i] * d[:, j] + d[:, i] * a1[:, j] + c_ * d[:, i] * d[:, j]
+        for col, (i, j) in enumerate(pairs)
+    ]
+    m2 = np.stack([np.bincount(group, weights=w, minlength=ncore) for w in w2], axis=1)
     safe = np.maximum(n_c, 1.0)
     mean = m1 / safe[:, None]
     cov = np.empty((len(cores), 3, 3))
@@ -422,8 +449,6 @@ def robust_deformation(
     cmp_core = inverse if cmp_mask is None else inverse[cmp_mask]
     order = _voxel_order(cmp_use - origin, core_spacing)
     cmp_use, cmp_core = cmp_use[order] - origin, cmp_core[order]
-    ref_tree = cKDTree(ref_use)
-    cmp_tree = cKDTree(cmp_use) if len(cmp_use) else None
 
     # pass 1: outward plane normal of the reference around each core (voxel moments)
     normal, variation = _voxel_normals(ref_use, cores, core_spacing, normal_radius)
@@ -436,8 +461,9 @@ def robust_deformation(
     # the same surface (a wall cylinder near a corner drops the roof's points)
     _, near = cKDTree(cores).query(ref_use, workers=workers)
     n32 = normal.astype(np.float32)
-    ref_epoch = (ref_tree, ref_use.astype(np.float32), n32[near])
-    cmp_epoch = (cmp_tree, cmp_use.astype(np.float32), n32[cmp_core])
+    index_radius = float(np.hypot(cylinder_radius, min(max_depth, cylinder_radius)))
+    ref_epoch = _Epoch(ref_use, n32[near], index_radius)
+    cmp_epoch = _Epoch(cmp_use, n32[cmp_core], index_radius)
     del near
 
     # pass 2: cylinder statistics of both epochs; the core lies on the compared surface, so
@@ -452,17 +478,15 @@ def robust_deformation(
         sl = slice(start, min(start + _CHUNK, n_cores))
         c, nrm = cores[sl], normal[sl]
         stats = [
-            *_epoch_stats(*ref_epoch, c, nrm, cylinder_radius, short, workers),
-            *_epoch_stats(*cmp_epoch, c, nrm, cylinder_radius, short, workers),
+            *_epoch_stats(ref_epoch, c, nrm, cylinder_radius, short),
+            *_epoch_stats(cmp_epoch, c, nrm, cylinder_radius, short),
         ]
         if max_depth > short:
             # no reference point, or its mean close to the end of the short cylinder
             deep = (stats[2] == 0) | ~(np.abs(stats[0]) < short - 3.0 * np.maximum(stats[1], 0.01))
             if deep.any():
                 n_deep += int(deep.sum())
-                ref_deep = _epoch_stats(
-                    *ref_epoch, c[deep], nrm[deep], cylinder_radius, max_depth, workers
-                )
+                ref_deep = _epoch_stats(ref_epoch, c[deep], nrm[deep], cylinder_radius, max_depth)
                 for s_, w in zip(stats[:3], ref_deep, strict=True):
                     s_[deep] = w
                 depth_used[np.arange(sl.start, sl.stop)[deep]] = max_depth
@@ -490,10 +514,10 @@ def robust_deformation(
         for depth in np.unique(ref_d):
             m = ref_d == depth
             for s_, w in zip(
-                stats[:3], _epoch_stats(*ref_epoch, c[m], nrm[m], rw, depth, workers), strict=True
+                stats[:3], _epoch_stats(ref_epoch, c[m], nrm[m], rw, depth), strict=True
             ):
                 s_[m] = w
-        cmp_w = _epoch_stats(*cmp_epoch, c, nrm, rw, short, workers)
+        cmp_w = _epoch_stats(cmp_epoch, c, nrm, rw, short)
         for s_, w in zip(stats[3:], cmp_w, strict=True):
             s_[:] = w
         for key, w in zip(out, stats, strict=True):
@@ -573,24 +597,24 @@ def robust_deformation(
     )
 
 
-def _epoch_stats(tree, pts, pt_normals, cores, normals, radius, depth, workers):
+def _epoch_stats(epoch: _Epoch, cores, normals, radius, depth):
     """Clipped mean / std / count of the projections on the core normal of one epoch's points
     inside each core's cylinder (radius ``radius`` about the normal, ``|along| <= depth``).
 
-    ``pts`` and ``pt_normals`` are float32 (offsets from a core are small); only points whose
-    own normal is within ``_MAX_ANGLE_DEG`` of the core's count. NaN / 0 without points.
+    Offsets from a core are small, so they are computed in float32; only points whose own
+    normal is within ``_MAX_ANGLE_DEG`` of the core's count. NaN / 0 without points.
     """
-    if tree is None:
+    if epoch.empty or len(cores) == 0:
         nan = np.full(len(cores), np.nan)
         return nan, nan.copy(), np.zeros(len(cores), dtype=np.int32)
-    group, idx, counts = _flat_ball(tree, cores, float(np.hypot(radius, depth)), workers)
-    cn = np.repeat(normals.astype(np.float32), counts, axis=0)
-    off = pts[idx] - np.repeat(cores.astype(np.float32), counts, axis=0)
-    a = np.einsum("ij,ij->i", off, cn)
-    inside = np.einsum("ij,ij->i", off, off) - a * a <= radius * radius
-    inside &= np.abs(a) <= depth
-    inside &= np.einsum("ij,ij->i", pt_normals[idx], cn) >= _COS_MAX_ANGLE
-    return _clipped_stats(group[inside], a[inside].astype(np.float64), len(cores))
+    group, idx, d2 = epoch.ball(cores, float(np.hypot(radius, depth)))
+    n32 = normals.astype(np.float32)
+    cn = n32[group]
+    a = np.einsum("ij,ij->i", epoch.pts[idx] - cores.astype(np.float32)[group], cn)
+    inside = (np.abs(a) <= depth) & (d2 - a * a <= radius * radius)
+    group, idx, a, cn = group[inside], idx[inside], a[inside], cn[inside]
+    same = np.einsum("ij,ij->i", epoch.normals[idx], cn) >= _COS_MAX_ANGLE
+    return _clipped_stats(group[same], a[same].astype(np.float64), len(cores))
 
 
 def _assign_cores(
@@ -661,22 +685,24 @@ def _spread(
     if ids.size < 2 or todo.size == 0:
         return d, lod
     k = min(_K_SPREAD, ids.size)
-    dist, j = cKDTree(cores[ids]).query(
-        pts[todo], k=k, distance_upper_bound=1.5 * spacing, workers=workers
-    )
+    p = pts[todo]
+    dist, j = cKDTree(cores[ids]).query(p, k=k, distance_upper_bound=1.5 * spacing, workers=workers)
     dist, j = dist.reshape(len(todo), k), j.reshape(len(todo), k)
     found = np.isfinite(dist)
     jj = ids[np.where(found, j, 0)]
     own = point_core[todo]
-    same = np.einsum("ijk,ik->ij", normals[jj], normals[own]) >= _COS_MAX_ANGLE
-    plane = np.abs(np.einsum("ijk,ijk->ij", pts[todo][:, None, :] - cores[jj], normals[jj]))
+    # float32 products: normals are unit vectors and the plane offsets are taken about each
+    # core (``p.n - c.n`` in float64), so single precision loses nothing that matters
+    n32 = normals.astype(np.float32)
+    nj = n32[jj]
+    same = np.einsum("ijk,ik->ij", nj, n32[own]) >= _COS_MAX_ANGLE
+    cn = np.einsum("ij,ij->i", cores, normals)
+    plane = np.abs(np.einsum("ijk,ik->ij", nj, p) - cn[jj])
+    del nj
     use = found & same & (plane <= _SPREAD_PLANE) & (jj != own[:, None])
-    w = np.where(
-        use, np.exp(-0.5 * (np.where(found, dist, 0.0) / (_SPREAD_SIGMA * spacing)) ** 2), 0.0
-    )
-    w_own = np.exp(
-        -0.5 * (np.linalg.norm(pts[todo] - cores[own], axis=1) / (_SPREAD_SIGMA * spacing)) ** 2
-    )
+    inv2s2 = -0.5 / (_SPREAD_SIGMA * spacing) ** 2
+    w = np.where(use, np.exp(inv2s2 * np.where(found, dist, 0.0) ** 2), 0.0)
+    w_own = np.exp(inv2s2 * np.einsum("ij,ij->i", p - cores[own], p - cores[own]))
     total = w.sum(axis=1) + w_own
     d[todo] = (np.einsum("ij,ij->i", w, np.where(use, d_core[jj], 0.0)) + w_own * d[todo]) / total
     lod[todo] = (

@@ -8,8 +8,8 @@ on each window's convex hull into a closed outer envelope, refines it on the poi
 and keeps as shell the points within a tolerance of that envelope.
 
 Everything is vectorised over all bins at once (one sort of all points by (bin, radius), one
-``np.interp`` over the concatenated envelopes of all windows); there is no loop over points
-or bins.
+``np.searchsorted`` over the concatenated envelopes of all windows); there is no loop over
+points or bins.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import logging
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from ..centerline.curve import Centerline
+from ..centerline.curve import Centerline, Projection
 from ..cloud import check_points
-from ..errors import ConfigError
+from ..errors import ConfigError, InvalidCloudError
 
 __all__ = ["classify_shell", "outer_envelope"]
 
@@ -45,17 +45,26 @@ def _bins(window: np.ndarray, theta: np.ndarray, sectors: int) -> tuple[np.ndarr
     return wid, wid * sectors + sec
 
 
+def _order_in_bins(bin_: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Permutation sorting points by bin, then by radius (one float sort instead of a
+    two-key ``np.lexsort``; radii below 1 km keep about 1e-7 m of resolution in the key
+    for up to a million bins)."""
+    return np.argsort(bin_.astype(np.float64) * 1024.0 + np.clip(rho, 0.0, 1023.0))
+
+
 def _ring(
     wid: np.ndarray,
     theta: np.ndarray,
     a_win: np.ndarray,
     a_theta: np.ndarray,
     a_rho: np.ndarray,
+    ray: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Closed polygon of each window through its anchors (in order of angle), evaluated along
     each point's ray from the centreline.
 
-    Returns the radius where the point's ray crosses its window's polygon and the obliquity
+    ``ray`` is ``(cos theta, sin theta)`` of the points when the caller has it. Returns the
+    radius where the point's ray crosses its window's polygon and the obliquity
     ``1 / |cos(incidence)|`` of that polygon edge to the ray.
     """
     o = np.lexsort((a_theta, a_win))
@@ -67,21 +76,21 @@ def _ring(
     w = np.concatenate([a_win[w_end], a_win, a_win[w_start]])
     xo = x + _WINDOW_PERIOD * w
     oo = np.argsort(xo, kind="stable")
-    xo, th, y = xo[oo], x[oo], y[oo]
+    xo, y = xo[oo], y[oo]
+    px, py = y * np.cos(x[oo]), y * np.sin(x[oo])  # anchor vertices in the section plane
+    ex_all, ey_all = np.diff(px), np.diff(py)  # polygon edges (between windows: unused)
     q = theta + _WINDOW_PERIOD * wid
     seg = np.clip(np.searchsorted(xo, q, side="right") - 1, 0, len(xo) - 2)
-    ax, ay = y[seg] * np.cos(th[seg]), y[seg] * np.sin(th[seg])
-    ex = y[seg + 1] * np.cos(th[seg + 1]) - ax
-    ey = y[seg + 1] * np.sin(th[seg + 1]) - ay
-    dx, dy = np.cos(theta), np.sin(theta)
+    ax, ay, ex, ey = px[seg], py[seg], ex_all[seg], ey_all[seg]
+    dx, dy = (np.cos(theta), np.sin(theta)) if ray is None else ray
     den = dx * ey - dy * ex
     length = np.hypot(ex, ey)
     ok = np.abs(den) > 1e-9 * np.maximum(length, 1e-12)
-    envelope = np.interp(q, xo, y)  # fallback for degenerate edges
-    envelope[ok] = ((ax * ey - ay * ex)[ok]) / den[ok]
-    obliquity = np.full(theta.shape, 1.0)
+    envelope = np.where(ok, (ax * ey - ay * ex) / np.where(ok, den, 1.0), 0.0)
+    if not ok.all():
+        envelope[~ok] = np.interp(q[~ok], xo, y)  # degenerate edges
     cos_inc = np.abs(den) / np.maximum(length, 1e-12)
-    obliquity[ok] = 1.0 / np.maximum(cos_inc[ok], 1e-3)
+    obliquity = np.where(ok, 1.0 / np.maximum(cos_inc, 1e-3), 1.0)
     return envelope, obliquity
 
 
@@ -141,9 +150,23 @@ def outer_envelope(
         faces the centreline; larger where it is seen at a grazing angle), so that a distance
         along the shell normal ``t`` is about ``t * obliquity`` along the radius.
     """
-    n = theta.shape[0]
     wid, bin_ = _bins(window, theta, sectors)
-    order = np.lexsort((rho, bin_))
+    return _outer(wid, bin_, theta, rho, rank=rank, hull=hull)
+
+
+def _outer(
+    wid: np.ndarray,
+    bin_: np.ndarray,
+    theta: np.ndarray,
+    rho: np.ndarray,
+    *,
+    rank: int,
+    hull: bool,
+    ray: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`outer_envelope` on precomputed window and bin ids (see :func:`_bins`)."""
+    n = theta.shape[0]
+    order = _order_in_bins(bin_, rho)
     b_sorted = bin_[order]
     starts = np.flatnonzero(np.r_[True, b_sorted[1:] != b_sorted[:-1]])
     ends = np.r_[starts[1:], n]
@@ -152,30 +175,32 @@ def outer_envelope(
     if hull:
         on = _hull_anchors(a_win, a_theta, a_rho)
         a_win, a_theta, a_rho = a_win[on], a_theta[on], a_rho[on]
-    return _ring(wid, theta, a_win, a_theta, a_rho)
+    return _ring(wid, theta, a_win, a_theta, a_rho, ray)
 
 
 def _upper_envelope(
-    window: np.ndarray,
+    wid: np.ndarray,
+    bin_: np.ndarray,
     theta: np.ndarray,
     rho: np.ndarray,
     keep: np.ndarray,
     *,
     sectors: int,
     quantile: float = _ANCHOR_QUANTILE,
+    ray: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Envelope through the mean angle and the ``quantile`` of the radius of the ``keep``
-    points of each bin (an upper quantile: objects near the shell pull a mean inward)."""
-    wid, bin_ = _bins(window, theta, sectors)
+    points of each bin (an upper quantile: objects near the shell pull a mean inward);
+    ``wid`` and ``bin_`` from :func:`_bins`."""
     kb, kt, kr = bin_[keep], theta[keep], rho[keep]
-    order = np.lexsort((kr, kb))
+    order = _order_in_bins(kb, kr)
     kb, kt, kr = kb[order], kt[order], kr[order]
     starts = np.flatnonzero(np.r_[True, kb[1:] != kb[:-1]])
     cnt = np.diff(np.r_[starts, len(kb)])
     inv = np.repeat(np.arange(len(starts)), cnt)
     m_theta = np.bincount(inv, weights=kt) / cnt
     q_rho = kr[starts + np.floor(quantile * (cnt - 1)).astype(np.intp)]
-    return _ring(wid, theta, kb[starts] // sectors, m_theta, q_rho)
+    return _ring(wid, theta, kb[starts] // sectors, m_theta, q_rho, ray)
 
 
 def classify_shell(
@@ -188,6 +213,7 @@ def classify_shell(
     outer_tolerance: float = 0.1,
     search_tolerance: float = 0.12,
     max_obliquity: float = 4.0,
+    projection: Projection | None = None,
     workers: int = -1,
 ) -> np.ndarray:
     """Which points are the tunnel shell (True) rather than objects in front of it (False).
@@ -217,6 +243,8 @@ def classify_shell(
     max_obliquity : float
         Cap on the radial stretch of the tolerances where the shell is seen at a grazing angle
         from the centreline (roof corners of a wide rectangular section).
+    projection : Projection, optional
+        ``centerline.project(xyz)`` when the caller already has it (saves a projection).
     workers : int
         Threads for the centreline projection.
 
@@ -228,7 +256,7 @@ def classify_shell(
     Raises
     ------
     InvalidCloudError
-        If ``xyz`` is not N x 3 finite coordinates.
+        If ``xyz`` is not N x 3 finite coordinates, or ``projection`` has another length.
     ConfigError
         If a window, tolerance or sector count is not positive.
 
@@ -257,14 +285,24 @@ def classify_shell(
     max_obliquity = _positive("max_obliquity", max_obliquity)
     if int(sectors) < 8:
         raise ConfigError(f"sectors must be an integer >= 8, got {sectors!r}")
-    proj = centerline.project(p, workers=workers)
+    if projection is None:
+        proj = centerline.project(p, workers=workers)
+    elif np.shape(projection.chainage) != (p.shape[0],):
+        raise InvalidCloudError(
+            f"projection has {np.shape(projection.chainage)} rows, expected ({p.shape[0]},)"
+        )
+    else:
+        proj = projection
     theta = np.arctan2(proj.vertical, proj.lateral)
     rho = proj.distance
+    safe = np.where(rho > 0.0, rho, 1.0)
+    ray = (np.where(rho > 0.0, proj.lateral / safe, 1.0), proj.vertical / safe)
     win = np.floor(proj.chainage / window).astype(np.int64)
-    env, obl = outer_envelope(win, theta, rho, sectors=int(sectors))
+    wid, bin_ = _bins(win, theta, int(sectors))
+    env, obl = _outer(wid, bin_, theta, rho, rank=1, hull=True, ray=ray)
     off = rho - env
     near = off >= -search_tolerance * np.minimum(obl, max_obliquity)
-    env, obl = _upper_envelope(win, theta, rho, near, sectors=int(sectors))
+    env, obl = _upper_envelope(wid, bin_, theta, rho, near, sectors=int(sectors), ray=ray)
     f = np.minimum(obl, max_obliquity)
     off = rho - env
     shell = (off >= -inner_tolerance * f) & (off <= outer_tolerance * f)
