@@ -39,11 +39,10 @@ the median cylinder (shadowed rock behind pipes, objects close to the rock), is 
 again with a cylinder twice as wide. A core gets NaN only when no reference point of its
 surface lies in its cylinder within ``max_depth`` (the surface moved further than
 ``max_depth``, the reference epoch did not see it, or the point is a stray return in
-mid-air). Where
-fewer than three reference points lie within ``normal_radius``, the normal falls back to the
-radial direction from the centreline. Corners: points whose core straddles two surfaces
-(surface variation above 0.02) take the value of the nearest planar core whose plane passes
-closest to them.
+mid-air). Where fewer than three reference points lie within ``normal_radius``, the normal
+falls back to the radial direction from the centreline. Corners: points whose core
+straddles two surfaces (surface variation above 0.02) take the value of the nearest planar
+core whose plane passes closest to them.
 
 Everything is vectorised: cylinder neighbourhoods come from Open3D's fixed-radius hash grid
 (``open3d.core.nns``, multi-threaded) on spatially sorted copies of the clouds as one flat
