@@ -17,6 +17,7 @@ danger_zones, danger_threshold, robust_peak
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from dataclasses import fields as dataclass_fields
 
@@ -126,6 +127,14 @@ def _shell_mask(
     except ImportError:
         return None
     return np.asarray(classify_shell(xyz, centerline, projection=projection), dtype=bool)
+
+
+def _projected_shell(
+    xyz: np.ndarray, centerline: Centerline, workers: int
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Chainage of the points and their shell mask (None where it is unavailable)."""
+    proj = centerline.project(xyz, workers=workers)
+    return proj.chainage, _shell_mask(xyz, centerline, proj)
 
 
 _COVERAGE_SAMPLE = 200_000
@@ -259,6 +268,14 @@ def compute_deformation(
 
     with timed_stage(logger, f"deformation ({method}) of {cmp.shape[0]} points"):
         report(progress, "deformation", 0.0)
+        ref_job = None
+        if method == "robust":
+            # the reference's projection and shell mask are independent of the compared
+            # cloud's: a second thread computes them meanwhile (NumPy's sorts and array
+            # arithmetic release the GIL)
+            pool = ThreadPoolExecutor(max_workers=1)
+            ref_job = pool.submit(_projected_shell, ref, centerline, workers)
+            pool.shutdown(wait=False)
         pp = centerline.project(cmp, workers=workers)
         if shell is None:
             shell_mask = _shell_mask(cmp, centerline, pp)
@@ -277,13 +294,13 @@ def compute_deformation(
         else:
             from .robust import robust_deformation
 
-            ref_pp = centerline.project(ref, workers=workers)
-            ref_chainage = ref_pp.chainage
+            assert ref_job is not None
+            ref_chainage, ref_mask = ref_job.result()
             r = robust_deformation(
                 ref,
                 cmp,
                 centerline,
-                ref_mask=_shell_mask(ref, centerline, ref_pp),
+                ref_mask=ref_mask,
                 cmp_mask=shell_mask,
                 registration_sigma=registration_sigma,
                 workers=workers,
