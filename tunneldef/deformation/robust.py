@@ -424,7 +424,8 @@ def robust_deformation(
         :func:`tunneldef.deformation.shell.classify_shell`); all by default. Every compared
         point gets a value whatever its mask.
     workers : int
-        Threads for the KD-tree queries (-1: all cores).
+        Threads for SciPy's KD-tree queries (-1: all cores); the cylinder and normal
+        neighbourhoods come from Open3D's radius search, which uses every core.
     progress : callable, optional
         ``progress(stage, fraction)``.
 
