@@ -423,10 +423,11 @@ def speed_block(n_points, seed, repeats=3):
     for label, fn in (
         ("robust_deformation", lambda: robust_deformation(ref, cmp_, line)),
         ("classify_shell (compared)", lambda: classify_shell(cmp_, line)),
-        *(
-            (f"compute_deformation {m}", lambda m=m: compute_deformation(ref, cmp_, line, method=m))
-            for m in ("robust", "knn")
+        (
+            "compute_deformation robust",
+            lambda: compute_deformation(ref, cmp_, line, method="robust"),
         ),
+        ("compute_deformation knn", lambda: compute_deformation(ref, cmp_, line, method="knn")),
     ):
         walls, cpus = [], []
         for _ in range(repeats):
