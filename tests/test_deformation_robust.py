@@ -74,7 +74,9 @@ def test_sag_peak_and_detection(sag_pair, sag_result):
     core = shell & (tr.displacement <= -0.8 * SAG)
     assert np.mean(d[core] < -0.010) >= 0.9  # recall at a 10 mm threshold in the sag core
     half = shell & (tr.displacement <= -0.5 * SAG)
-    assert np.mean(d[half]) == pytest.approx(np.mean(tr.displacement[half]), abs=0.0015)
+    # the half-amplitude patch holds ~650 points per epoch: its mean alone has a standard error
+    # of 15 mm * sqrt(2 / 650) = 0.8 mm, so 2 mm is about 2.5 of them
+    assert np.mean(d[half]) == pytest.approx(np.mean(tr.displacement[half]), abs=0.002)
     assert sag_result.significant[core].mean() >= 0.9
 
 
@@ -109,9 +111,11 @@ def test_sign_on_roof_walls_and_floor():
 
 
 def test_lod_grows_with_noise():
+    # the plain cylinder means (pooling, which lowers a sparse scan's LoD, is checked below)
     quiet_pair = _pair(noise=0.005, seed=5, length=5.0)
-    quiet = _run(quiet_pair)
-    noisy = _run(_pair(noise=0.03, seed=5, length=5.0))
+    quiet = _run(quiet_pair, pool=False)
+    noisy_pair = _pair(noise=0.03, seed=5, length=5.0)
+    noisy = _run(noisy_pair, pool=False)
     lq, ln = np.nanmedian(quiet.lod95), np.nanmedian(noisy.lod95)
     assert ln > 4.0 * lq
     # LoD95 ~ 1.96 sigma sqrt(2 / n) with ~50 points per epoch in a 0.2 m cylinder
@@ -120,6 +124,13 @@ def test_lod_grows_with_noise():
     # the registration uncertainty adds 1.96 sigma_reg
     reg = _run(quiet_pair, registration_sigma=0.004)
     assert np.nanmedian(reg.lod95) == pytest.approx(lq + 1.96 * 0.004, abs=0.0005)
+    # pooled, the noisy scan's LoD is lower and still honest: nothing moved, so about 5 % of
+    # the shell at most may exceed it
+    pooled = _run(noisy_pair)
+    assert pooled.meta["pooled_cores"] > 0.5 * pooled.meta["cores"]
+    assert 0.5 * ln < np.nanmedian(pooled.lod95) < 0.9 * ln
+    shell = (noisy_pair.truth.label == 0) & np.isfinite(pooled.deformation)
+    assert np.mean(pooled.significant[shell]) <= 0.05
 
 
 def _brute_core(ref, cmp_, res, q, *, ref_core, cmp_core, max_depth=0.3, radius_c=0.2):
@@ -156,7 +167,7 @@ def test_vectorised_path_matches_numpy_reference():
         deformations=[DeformationSpec(kind="roof_sag", chainage=6.0, amplitude=0.03)], seed=6
     )
     ref, cmp_ = pair.ref.xyz, pair.truth.cmp_xyz_in_ref
-    res = _run(pair)
+    res = _run(pair, pool=False)  # the cylinder means themselves (pooling mixes cores)
     # owner core of every point: the nearest core for reference points, the voxel's core for
     # compared points (their normals decide which points belong to a core's surface)
     _, ref_core = cKDTree(res.core_xyz).query(ref)
@@ -266,3 +277,49 @@ def test_sharpening_takes_out_the_smoothing_bias_only_where_the_cylinders_are_de
     # sparse and noisy (400 points/m^2, +-3 cm): the cylinders cannot afford it
     sparse = _run(_pair(length=5.0, seed=6))
     assert sparse.meta["sharpened_cores"] < 0.05 * sparse.meta["cores"]
+    # and the dense cylinders need no pooling
+    assert sharp.meta["pooled_cores"] < 0.05 * sharp.meta["cores"]
+
+
+def test_pooling_cancels_its_own_smoothing_bias_and_lowers_the_noise():
+    # cores on a flat roof every 0.2 m carrying a 30 mm, 4 m x 2 m cosine sag (the synthetic
+    # sag's shape), each with a plain cylinder's bias-free value: the pooled field must read
+    # the peak within 4 % where a single Gaussian mean of the same width reads it 9 % low
+    from tunneldef.deformation.robust import _pool
+
+    g = np.arange(-4.0, 4.0 + 1e-9, 0.2)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    cores = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, 2.0)])
+    normals = np.tile([0.0, 0.0, 1.0], (len(cores), 1))
+    variation = np.zeros(len(cores))
+
+    def taper(u, length):
+        return np.where(np.abs(u) < length / 2, 0.5 * (1 + np.cos(2 * np.pi * u / length)), 0.0)
+
+    truth = -0.03 * taper(cores[:, 0], 4.0) * taper(cores[:, 1], 2.0)
+    se = np.full(len(cores), 0.003)
+    kw = dict(sigma=0.2, base=0.0, overlap=1.0)
+    ids, lam, d, se_p = _pool(cores, normals, variation, truth, se, **kw)
+    assert np.array_equal(ids, np.arange(len(cores))) and np.all(lam == 1.0)
+    peak = int(np.argmin(truth))
+    got = d[ids == peak][0]
+    assert got == pytest.approx(truth[peak], rel=0.04)
+    w = np.exp(-0.5 * ((cores - cores[peak]) ** 2).sum(axis=1) / 0.2**2)
+    single = np.sum(w * truth) / w.sum()
+    assert single > 0.91 * truth[peak]  # reads low
+    # beyond the pooling's reach (3 sigma of the wider mean, 0.85 m) nothing is invented
+    far = (np.abs(cores[:, 0]) > 2.9) | (np.abs(cores[:, 1]) > 1.9)
+    assert np.abs(d[far]).max() < 1e-12
+    # independent noise of 3 mm per core comes out well below it, and the propagated error
+    # says by how much
+    rng = np.random.default_rng(1)
+    noisy = truth + rng.normal(0.0, 0.003, len(cores))
+    _, _, dn, se_n = _pool(cores, normals, variation, noisy, se, **kw)
+    inner = (np.abs(cores[:, 0]) < 3.0) & (np.abs(cores[:, 1]) < 3.0)
+    err = (dn - truth)[inner]
+    assert err.std() < 0.5 * 0.003
+    assert err.std() == pytest.approx(np.median(se_n[inner]), rel=0.25)
+    # cores at or below 1.5 mm are left alone, a corner core is never pooled
+    variation[peak] = 0.1
+    ids2, *_ = _pool(cores, normals, variation, truth, np.where(cores[:, 0] > 0, se, 0.001), **kw)
+    assert peak not in ids2 and np.all(cores[ids2, 0] > 0)
