@@ -328,6 +328,21 @@ def test_robust_method_dispatch(pair):
     assert np.nanmedian(d.deformation[core]) == pytest.approx(-AMP, abs=0.008)
     assert np.nanmedian(d.vertical[core]) < -0.02
     assert d.method == "robust" and d.k is None
+    # the sparse-scan pooling is a config switch: off, the plain cylinders are noisier here
+    plain = compute_deformation(
+        pair.ref.xyz,
+        t.cmp_xyz_in_ref[near],
+        t.centerline,
+        method="robust",
+        shell=t.label[near] == 0,
+        config=Config().replace(deformation={"pool": False}),
+    )
+    still = near & (t.label == 0) & (t.displacement == 0.0)
+    noise = {
+        name: np.nanmean(np.abs(r.deformation[still[near]]))
+        for name, r in (("pooled", d), ("plain", plain))
+    }
+    assert noise["pooled"] < 0.95 * noise["plain"]
 
 
 def test_with_extracted_centerline(pair):

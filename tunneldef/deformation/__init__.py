@@ -178,7 +178,7 @@ def _knn_deformation(
 
 def _robust_kwargs(cfg: object) -> dict[str, object]:
     """Robust-estimator parameters present in the deformation config section."""
-    names = ("normal_radius", "cylinder_radius", "max_depth", "core_spacing")
+    names = ("normal_radius", "cylinder_radius", "max_depth", "core_spacing", "pool")
     return {n: getattr(cfg, n) for n in names if hasattr(cfg, n)}
 
 
