@@ -439,9 +439,9 @@ def robust_deformation(
         Take out the smoothing bias of the cylinders and the interpolation where the
         cylinders are dense enough (see the module docstring); False keeps the plain means.
     pool : bool
-        Where the cylinders are too sparse for that (standard error above 2 mm), replace each
-        core by a bias-corrected mean of the cores around it on its surface (see the module
-        docstring); False keeps the plain means.
+        Where the cylinders are too sparse for that (standard error above 1.5 mm, fully from
+        2 mm), blend each core into a bias-corrected mean of the cores around it on its
+        surface (see the module docstring); False keeps the plain means.
     ref_mask, cmp_mask : ndarray of bool, optional
         Points allowed to contribute to the local surfaces (e.g. the tunnel shell from
         :func:`tunneldef.deformation.shell.classify_shell`); all by default. Every compared
