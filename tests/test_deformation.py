@@ -315,13 +315,18 @@ def test_coal_on_the_conveyor_is_change_but_not_shell(pair, method):
 def test_robust_method_dispatch(pair):
     t = pair.truth
     near = np.abs(t.chainage - SAG) < 2.5  # the sag's stretch only, to keep the test short
-    d = compute_deformation(
-        pair.ref.xyz,
-        t.cmp_xyz_in_ref[near],
-        t.centerline,
-        method="robust",
-        shell=t.label[near] == 0,
-    )
+
+    def robust(**kw):
+        return compute_deformation(
+            pair.ref.xyz,
+            t.cmp_xyz_in_ref[near],
+            t.centerline,
+            method="robust",
+            shell=t.label[near] == 0,
+            **kw,
+        )
+
+    d = robust()
     f = d.fields()
     assert f["significant"].dtype == np.uint8 and f["lod95"].dtype == np.float32
     core = _core(pair, "roof_sag")[near]
@@ -329,14 +334,7 @@ def test_robust_method_dispatch(pair):
     assert np.nanmedian(d.vertical[core]) < -0.02
     assert d.method == "robust" and d.k is None
     # the sparse-scan pooling is a config switch: off, the plain cylinders are noisier here
-    plain = compute_deformation(
-        pair.ref.xyz,
-        t.cmp_xyz_in_ref[near],
-        t.centerline,
-        method="robust",
-        shell=t.label[near] == 0,
-        config=Config().replace(deformation={"pool": False}),
-    )
+    plain = robust(config=Config().replace(deformation={"pool": False}))
     still = near & (t.label == 0) & (t.displacement == 0.0)
     noise = {
         name: np.nanmean(np.abs(r.deformation[still[near]]))
