@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from tunneldef.centerline.curve import Centerline
-from tunneldef.deformation.shell import classify_shell, outer_envelope
+from tunneldef.deformation.shell import classify_shell, outer_envelope, shell_envelope, shell_mask
 from tunneldef.errors import ConfigError, InvalidCloudError
 from tunneldef.synth import DeformationSpec, PairSpec, SectionSpec, TunnelSpec, make_pair
 
@@ -122,3 +124,59 @@ def test_a_given_projection_gives_the_same_mask_and_is_checked():
     )
     with pytest.raises(InvalidCloudError, match="projection"):
         classify_shell(xyz[:-1], tr.centerline, projection=proj)
+
+
+def test_an_envelope_evaluated_elsewhere_and_the_common_cut():
+    pair = make_pair(
+        PairSpec(
+            tunnel=TunnelSpec(length=8.0, equipment=True, conveyor=True),
+            deformations=(DeformationSpec(kind="roof_sag", chainage=4.0, amplitude=0.08),),
+            seed=5,
+        )
+    )
+    tr, line = pair.truth, pair.truth.centerline
+    ref, cmp_ = pair.ref.xyz, tr.cmp_xyz_in_ref
+    p_ref, p_cmp = line.project(ref), line.project(cmp_)
+    env_r, off_r, obl_r = shell_envelope(ref, line, projection=p_ref)
+    env_c, off_c, obl_c = shell_envelope(cmp_, line, projection=p_cmp)
+    # evaluated at its own points, the envelope gives back the offsets it was built with
+    o, f = env_r.offset(p_ref)
+    np.testing.assert_array_equal(o, off_r)
+    np.testing.assert_array_equal(f, obl_r)
+    # beyond its chainage windows it has no value
+    assert np.isnan(env_r.offset(replace(p_ref, chainage=p_ref.chainage + 100.0))[0]).all()
+    # the 8 cm sag moved the compared envelope inward there, by most of its depth (each bin's
+    # upper quartile over a 1 m window leans to the less sagged part of the window)
+    o_rc, f_rc = env_r.offset(p_cmp)
+    core = tr.displacement < -0.07
+    assert -0.085 < np.median(o_rc[core] - off_c[core]) < -0.045
+    # with the local difference taken out it matches the own envelope there, and away from
+    # the sag both stay within the envelopes' own noise
+    m_rc, mf_rc = env_r.matched_offset(p_cmp, off_c)
+    np.testing.assert_array_equal(mf_rc, f_rc)
+    assert abs(np.median(m_rc[core] - off_c[core])) < 0.015
+    still = (tr.label == SHELL) & (tr.displacement == 0.0) & np.isfinite(m_rc)
+    assert np.percentile(np.abs(m_rc - off_c)[still], 90) < 0.025
+    # the rule: inside the inner tolerance of either envelope, never beyond the own outer one
+    own = shell_mask(off_c, obl_c)
+    both = shell_mask(off_c, obl_c, other=(o_rc, f_rc))
+    assert (both >= own).all()
+    either = (off_c >= -0.055 * obl_c) | (o_rc >= -0.055 * f_rc)
+    np.testing.assert_array_equal(both, either & (off_c <= 0.1 * obl_c))
+    # the reference at the sag is cut from the compared (inner) envelope: it keeps all its
+    # shell points there, as the compared points keep theirs against their own envelope
+    o_cr, f_cr = env_c.offset(p_ref)
+    ref_both = shell_mask(off_r, obl_r, other=(o_cr, f_cr))
+    assert (ref_both >= shell_mask(off_r, obl_r)).all()
+    sag_ref = (tr.ref_label == SHELL) & (np.abs(tr.ref_chainage - 4.0) < 0.3)
+    sag_ref &= p_ref.vertical > 0.8 * p_ref.vertical.max()
+    assert sag_ref.sum() > 100
+    assert ref_both[sag_ref].mean() >= 0.995
+    assert both[core & (tr.label == SHELL)].mean() >= 0.995
+    # a point too far inside both envelopes is not shell, NaN (no other envelope) is the own
+    one = np.ones(1)
+    assert not shell_mask(np.array([-0.2]), one, other=(np.array([-0.1]), one))[0]
+    assert shell_mask(np.array([-0.2]), one, other=(np.array([-0.05]), one))[0]
+    nan = (np.array([np.nan]), np.array([np.nan]))
+    assert shell_mask(np.array([-0.05]), one, other=nan)[0]
+    assert not shell_mask(np.array([-0.06]), one, other=nan)[0]

@@ -28,6 +28,7 @@ from ..cloud import check_points
 from ..config import Config
 from ..errors import ConfigError, InvalidCloudError
 from ..progress import ProgressCallback, report, timed_stage
+from . import shell as shell_module
 from .classify import danger_threshold, danger_zones, normal_component, robust_peak
 from .knn import counterpart_projection, knn_counterparts, manhattan_split
 from .sections import SURFACE_NAMES, section_statistics, surface_labels, write_sections_csv
@@ -118,23 +119,13 @@ class DeformationResult:
         return out
 
 
-def _shell_mask(
-    xyz: np.ndarray, centerline: Centerline, projection: Projection | None = None
-) -> np.ndarray | None:
-    """Shell mask from :mod:`tunneldef.deformation.shell`, or None where it is unavailable."""
-    try:
-        from .shell import classify_shell
-    except ImportError:
-        return None
-    return np.asarray(classify_shell(xyz, centerline, projection=projection), dtype=bool)
-
-
-def _projected_shell(
-    xyz: np.ndarray, centerline: Centerline, workers: int
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """Chainage of the points and their shell mask (None where it is unavailable)."""
-    proj = centerline.project(xyz, workers=workers)
-    return proj.chainage, _shell_mask(xyz, centerline, proj)
+def _envelope(
+    xyz: np.ndarray, centerline: Centerline, workers: int, projection: Projection | None = None
+) -> tuple[Projection, shell_module.ShellEnvelope, np.ndarray, np.ndarray]:
+    """Projection of the points, their shell's envelope and their offsets from it."""
+    proj = centerline.project(xyz, workers=workers) if projection is None else projection
+    env, off, obl = shell_module.shell_envelope(xyz, centerline, projection=proj, workers=workers)
+    return proj, env, off, obl
 
 
 _COVERAGE_SAMPLE = 200_000
@@ -214,7 +205,8 @@ def compute_deformation(
         Overrides ``config.deformation.k`` (paper Table 3: 3).
     shell : ndarray of bool, shape (N,), optional
         Precomputed shell mask; by default
-        :func:`tunneldef.deformation.shell.classify_shell` decides.
+        :func:`tunneldef.deformation.shell.classify_shell` decides (with this mask, the
+        reference is classified on its own, without the common cut of the Notes).
     registration_sigma : float
         ``robust`` only: standard uncertainty of the registration, metres, added to the level
         of detection.
@@ -243,7 +235,10 @@ def compute_deformation(
     the counterpart: negative). ``robust``: the estimator's signed normal distance, split into
     horizontal and vertical parts along its normal; points it cannot measure because they lie
     off the shell surface (equipment, coal, people) get the ``knn`` value, so that moved
-    clutter still shows.
+    clutter still shows. The estimator's surfaces are fitted to the shell points of both
+    epochs, cut from the inner of the two epochs' envelopes (after their local difference, the
+    motion, is taken out: :meth:`tunneldef.deformation.shell.ShellEnvelope.matched_offset`);
+    the ``shell`` field is each compared point's own classification.
     Both: points beyond the chainage range of the reference points (their 0.05-99.95 %
     quantiles) get NaN, and so do (``knn``) points farther than
     ``config.deformation.max_distance`` from their counterpart (holes in the reference).
@@ -270,18 +265,17 @@ def compute_deformation(
         report(progress, "deformation", 0.0)
         ref_job = None
         if method == "robust":
-            # the reference's projection and shell mask are independent of the compared
+            # the reference's projection and shell envelope are independent of the compared
             # cloud's: a second thread computes them meanwhile (NumPy's sorts and array
             # arithmetic release the GIL)
             pool = ThreadPoolExecutor(max_workers=1)
-            ref_job = pool.submit(_projected_shell, ref, centerline, workers)
+            ref_job = pool.submit(_envelope, ref, centerline, workers)
             pool.shutdown(wait=False)
         pp = centerline.project(cmp, workers=workers)
+        cmp_env = None
         if shell is None:
-            shell_mask = _shell_mask(cmp, centerline, pp)
-            if shell_mask is None:
-                logger.warning("shell classification unavailable; every point counts as shell")
-                shell_mask = np.ones(cmp.shape[0], dtype=bool)
+            _, cmp_env, cmp_off, cmp_obl = _envelope(cmp, centerline, workers, pp)
+            shell_mask = shell_module.shell_mask(cmp_off, cmp_obl)
         else:
             shell_mask = np.asarray(shell, dtype=bool)
         report(progress, "deformation", 0.1)
@@ -295,13 +289,26 @@ def compute_deformation(
             from .robust import robust_deformation
 
             assert ref_job is not None
-            ref_chainage, ref_mask = ref_job.result()
+            ref_pp, ref_env, ref_off, ref_obl = ref_job.result()
+            ref_chainage = ref_pp.chainage
+            if cmp_env is None:  # the caller's own shell mask: each epoch on its own
+                ref_mask = shell_module.shell_mask(ref_off, ref_obl)
+                cmp_mask = shell_mask
+            else:
+                # both epochs' surfaces are measured on points cut at one level, from the inner
+                # of the two envelopes once their local difference (the motion) is taken out
+                with ThreadPoolExecutor(max_workers=1) as pool:
+                    other_job = pool.submit(cmp_env.matched_offset, ref_pp, ref_off)
+                    cmp_other = ref_env.matched_offset(pp, cmp_off)
+                    ref_other = other_job.result()
+                ref_mask = shell_module.shell_mask(ref_off, ref_obl, other=ref_other)
+                cmp_mask = shell_module.shell_mask(cmp_off, cmp_obl, other=cmp_other)
             r = robust_deformation(
                 ref,
                 cmp,
                 centerline,
                 ref_mask=ref_mask,
-                cmp_mask=shell_mask,
+                cmp_mask=cmp_mask,
                 registration_sigma=registration_sigma,
                 workers=workers,
                 progress=sub(0.1, 0.85),
