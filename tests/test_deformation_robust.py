@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.special import ndtri
 
+from tunneldef.deformation.cylinders import _INNER_TRIM
 from tunneldef.deformation.robust import (
-    _INNER_TRIM,
     RobustDeformation,
     robust_deformation,
     voxel_cores,
@@ -232,7 +232,7 @@ def test_errors():
 
 
 def test_radius_index_finds_exactly_the_kd_tree_neighbours():
-    from tunneldef.deformation.robust import _RadiusIndex
+    from tunneldef.deformation.cylinders import _RadiusIndex
 
     rng = np.random.default_rng(4)
     pts = rng.uniform(-3.0, 3.0, (20_000, 3))
@@ -285,7 +285,7 @@ def test_pooling_cancels_its_own_smoothing_bias_and_lowers_the_noise():
     # cores on a flat roof every 0.2 m carrying a 30 mm, 4 m x 2 m cosine sag (the synthetic
     # sag's shape), each with a plain cylinder's bias-free value: the pooled field must read
     # the peak within 4 % where a single Gaussian mean of the same width reads it 9 % low
-    from tunneldef.deformation.robust import _pool
+    from tunneldef.deformation.corefield import _pool
 
     g = np.arange(-4.0, 4.0 + 1e-9, 0.2)
     x, y = np.meshgrid(g, g, indexing="ij")

@@ -12,6 +12,9 @@ section_statistics, write_sections_csv
     Statistics of cross-sections along the chainage (paper Table 4).
 danger_zones, danger_threshold, robust_peak
     Danger classification and chainage intervals (paper §4.3, Fig. 22).
+
+Modules: ``knn`` (the paper's estimator), ``robust`` (the local-surface estimator, built on
+``cylinders`` and ``corefield``), ``shell`` (shell versus clutter), ``sections``, ``classify``.
 """
 
 from __future__ import annotations
