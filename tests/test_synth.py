@@ -407,12 +407,12 @@ def test_progress_is_reported():
 
 
 def test_shell_drawn_in_stretches_is_one_uniform_sample(monkeypatch):
-    import tunneldef.synth as synth
+    from tunneldef.synth import sampling
 
     defs = (DeformationSpec("roof_sag", chainage=10.0, amplitude=0.05),)
     spec = TunnelSpec(length=20.0, density=100.0, holes=6, equipment=True, **CLEAN)
     whole, tw = make_tunnel(spec, deformations=defs, seed=3)
-    monkeypatch.setattr(synth, "_SHELL_CHUNK", 3000)  # ~12 stretches
+    monkeypatch.setattr(sampling, "_SHELL_CHUNK", 3000)  # ~12 stretches
     parts, tp = make_tunnel(spec, deformations=defs, seed=3)
     assert len(parts) == pytest.approx(len(whole), rel=0.02)
     assert np.all(np.diff(tp.chainage) >= 0)  # still in walk order
