@@ -295,7 +295,8 @@ class ShellEnvelope:
         Returns
         -------
         offset, obliquity : ndarray, shape (N,)
-            NaN where either envelope has no value.
+            The offset is NaN where either envelope has no value (as is the obliquity where
+            this one has none).
 
         Notes
         -----
