@@ -322,26 +322,23 @@ def test_bad_specs_raise(build, match):
         build()
 
 
-def test_write_pair(tmp_path):
+@pytest.mark.parametrize("fmt", ["ply", "las", "laz"])
+def test_write_pair(tmp_path, fmt):
+    from tunneldef.io import read
+
     pair = make_pair(tunnel=TunnelSpec(length=6.0, density=30.0), seed=4)
-    paths = write_pair(pair, tmp_path)
+    paths = write_pair(pair, tmp_path, fmt=fmt)
     assert set(paths) == {"ref", "cmp", "truth"}
+    assert paths["cmp"].suffix == f".{fmt}"
     assert all(p.is_file() for p in paths.values())
     truth = np.load(paths["truth"])
     np.testing.assert_array_equal(truth["transform"], pair.truth.transform)
     np.testing.assert_array_equal(truth["label"], pair.truth.label)
     assert truth["cmp_xyz_in_ref"].shape == (len(pair.cmp), 3)
     assert json.loads(str(truth["spec_json"]))["seed"] == 4
-    try:
-        from tunneldef.io import read
-    except ImportError:
-        from plyfile import PlyData
-
-        v = PlyData.read(str(paths["cmp"]))["vertex"]
-        xyz = np.stack([v["x"], v["y"], v["z"]], axis=1)
-    else:
-        xyz = read(paths["cmp"]).xyz
-    np.testing.assert_allclose(xyz, pair.cmp.xyz, atol=1e-4)  # float32 PLY coordinates
+    back = read(paths["cmp"])
+    np.testing.assert_allclose(back.xyz, pair.cmp.xyz, atol=1e-3)  # LAS scale 1 mm
+    np.testing.assert_allclose(back.fields["intensity"], pair.cmp.fields["intensity"], rtol=1e-6)
 
 
 def test_people_and_belt_shadow():

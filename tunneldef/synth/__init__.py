@@ -46,7 +46,7 @@ import numpy as np
 
 from ..centerline.curve import Centerline
 from ..cloud import Cloud
-from ..errors import ConfigError
+from ..io import write as write_cloud
 from ..progress import ProgressCallback, report, timed_stage
 from .design import (
     LABEL_DYNAMIC,
@@ -380,17 +380,8 @@ def write_pair(pair: SynthPair, out_dir: str | Path, *, fmt: str = "ply") -> dic
     out.mkdir(parents=True, exist_ok=True)
     fmt = fmt.lower().lstrip(".")
     paths = {"ref": out / f"ref.{fmt}", "cmp": out / f"cmp.{fmt}", "truth": out / "truth.npz"}
-    try:
-        from .io import write as io_write
-    except ImportError:
-        io_write = None
     for key, cloud in (("ref", pair.ref), ("cmp", pair.cmp)):
-        if io_write is not None:
-            io_write(paths[key], cloud)
-        elif fmt == "ply":
-            _write_ply(paths[key], cloud)
-        else:
-            raise ConfigError(f"cannot write {fmt!r} without tunneldef.io; use fmt='ply'")
+        write_cloud(paths[key], cloud)
     t = pair.truth
     np.savez_compressed(
         paths["truth"],
@@ -413,16 +404,3 @@ def write_pair(pair: SynthPair, out_dir: str | Path, *, fmt: str = "ply") -> dic
     )
     return paths
 
-
-def _write_ply(path: Path, cloud: Cloud) -> None:
-    from plyfile import PlyData, PlyElement
-
-    n = len(cloud)
-    dt = [("x", "f8"), ("y", "f8"), ("z", "f8")] + [
-        (f"scalar_{k}", v.dtype.str) for k, v in cloud.fields.items()
-    ]
-    arr = np.empty(n, dtype=dt)
-    arr["x"], arr["y"], arr["z"] = cloud.xyz.T
-    for k, v in cloud.fields.items():
-        arr[f"scalar_{k}"] = v
-    PlyData([PlyElement.describe(arr, "vertex")], byte_order="<").write(str(path))
