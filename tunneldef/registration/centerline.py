@@ -409,6 +409,19 @@ def fine_align(
     # a featureless overlap matches equally well at many shifts: then the coarse spread, not
     # the local least-squares value, says how well the position along the axis is known
     ambiguous = spread > 1.0
+    if ambiguous and shift is not None and shift.informative and shift.strongest_block is not None:
+        # on a long overlap one feature (a chamber in 350 m) is lost in the whole tunnel's
+        # clutter; judge the match again on the stretch around the feature the fine stage used
+        moved = _apply(total, cmp_xyz)
+        local_shift, local_spread = _feature_window_shift(
+            ref_proj, moved, ref_cl, float(shift.strongest_block) + 0.5, axial_search
+        )
+        out.info["axial_feature_window"] = {
+            "chainage": float(shift.strongest_block) + 0.5,
+            "shift": local_shift,
+            "spread": local_spread,
+        }
+        ambiguous = not (local_spread <= 1.0 and abs(local_shift) <= _FEATURE_AGREE)
     # (beyond its basin the mismatch of a partial overlap is no measure: report it unknown)
     out.axial_uncertainty = float("inf") if ambiguous else float(shift.uncertainty)
     out.axial_informative = bool(shift.informative and not ambiguous)
@@ -417,6 +430,31 @@ def fine_align(
 
 
 _AXIAL_END_MARGIN = 0.5  # m
+_FEATURE_WINDOW = 10.0  # m either side of the strongest along-axis feature
+_FEATURE_AGREE = 0.5  # m: the window's coarse shift must confirm the fine solution this closely
+
+
+def _feature_window_shift(
+    ref_proj: tuple[np.ndarray, np.ndarray, np.ndarray],
+    moved: np.ndarray,
+    ref_cl: Centerline,
+    centre: float,
+    search: float,
+) -> tuple[float, float]:
+    """Coarse shift and spread (:func:`.axial.coarse_shift`) of the compared points within
+    ``_FEATURE_WINDOW`` of chainage ``centre`` (already aligned, so the shift should be about
+    0) against the reference around them."""
+    p = ref_cl.project(moved)
+    cs = np.abs(p.chainage - centre) < _FEATURE_WINDOW
+    rs = np.abs(ref_proj[0] - centre) < _FEATURE_WINDOW + search
+    if cs.sum() < 1000 or rs.sum() < 1000:
+        return 0.0, float("inf")
+    return coarse_shift(
+        (ref_proj[0][rs], ref_proj[1][rs], ref_proj[2][rs]),
+        (p.chainage[cs], p.lateral[cs], p.vertical[cs]),
+        ref_cl,
+        search=search,
+    )
 _AXIAL_MAX_POINTS = 60_000
 
 
