@@ -294,6 +294,11 @@ def register(
     for name, m in stages.items():
         world_stages[name] = f_ref_inv @ m @ coarse
 
+    # a position the first pass could confirm only around one feature (a long overlap) is
+    # known to half a coarse bin at best, whatever the later local fits claim
+    axial_floor = (
+        float(info.get("axial_uncertainty", 0.0)) if "axial_feature_window" in info else 0.0
+    )
     if method == "centerline":
         # second pass over the common stretch only, from where the first pass left off
         assert ref_cl is not None and cmp_cl is not None
@@ -319,7 +324,7 @@ def register(
             local = fine.transform @ local
             world_stages["common_stretch"] = f_ref_inv @ local @ coarse
             if info.get("axial_uncertainty", np.inf) < 1.0:
-                info["axial_uncertainty"] = fine.axial_uncertainty
+                info["axial_uncertainty"] = max(fine.axial_uncertainty, axial_floor)
         timings["common_stretch"] = time.perf_counter() - t0
 
     if method == "centerline" and rc.refine:
@@ -347,7 +352,7 @@ def register(
         if applied:
             local = corr @ local
             if "refine_axial_uncertainty" in info:
-                info["axial_uncertainty"] = info["refine_axial_uncertainty"]
+                info["axial_uncertainty"] = max(info["refine_axial_uncertainty"], axial_floor)
         info.pop("refine_axial_uncertainty", None)
         world_stages["refine"] = f_ref_inv @ local @ coarse
         timings["refine"] = time.perf_counter() - t0
