@@ -1,0 +1,71 @@
+"""Write the reference fingerprints of ``detect`` on fixed synthetic pairs.
+
+``tests/test_golden.py`` runs the same pairs and checks every output field bit for bit against
+``golden.json``. A change that is meant to move results regenerates the file:
+``python tests/golden/make_golden.py`` (and the commit says why the results moved).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parents[1]))
+
+
+def pairs() -> dict[str, object]:
+    """The fixed pairs: the quick demo and a curved, arched, sparse pair."""
+    from tunneldef import synth
+    from tunneldef.demo import demo_spec
+
+    curved = synth.PairSpec(
+        tunnel=synth.TunnelSpec(
+            length=30.0, section=synth.SectionSpec(kind="arch"), density=120.0,
+            noise_sigma=0.012, radius=80.0, chamber=True, chamber_chainage=18.0,
+            roughness=0.02,
+        ),
+        deformations=(
+            synth.DeformationSpec(kind="roof_sag", chainage=12.0, length=3.0, width=1.5,
+                                  amplitude=0.03),
+        ),
+        cmp_shift=1.0,
+        seed=3,
+    )
+    return {"demo_quick": demo_spec(quick=True), "curved_arched": curved}
+
+
+def fingerprint(spec: object) -> dict[str, object]:
+    """Hashes (and leading values, for diagnosis) of every field ``detect`` writes."""
+    from tunneldef import synth
+    from tunneldef.config import Config
+    from tunneldef.pipeline import detect
+
+    pair = synth.make_pair(spec)
+    res = detect(pair.ref, pair.cmp, Config())
+    out: dict[str, object] = {"fields": {}}
+    for name in sorted(res.cloud.fields):
+        a = np.ascontiguousarray(res.cloud.fields[name])
+        out["fields"][name] = {
+            "dtype": str(a.dtype),
+            "sha256": hashlib.sha256(a.tobytes()).hexdigest(),
+            "head": [float(v) for v in a[:8]],
+        }
+    out["transform"] = np.asarray(res.transform).tolist()
+    out["zones"] = len(res.zones)
+    out["sections"] = len(res.sections)
+    return out
+
+
+def main() -> None:
+    data = {name: fingerprint(spec) for name, spec in pairs().items()}
+    (HERE / "golden.json").write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    print(f"wrote {HERE / 'golden.json'}")
+
+
+if __name__ == "__main__":
+    main()
