@@ -16,9 +16,12 @@ import logging
 
 import numpy as np
 
-from tunneldef.registration import register
+from tunneldef.config import Config
+from tunneldef.pipeline import register_epochs
 from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
 
+#: the raw registration, its along-axis uncertainty reported rather than refused
+ANY_AXIAL = Config().replace(registration={"max_axial_uncertainty": float("inf")})
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -35,7 +38,7 @@ def main() -> None:
         pair = make_pair(
             PairSpec(tunnel=tunnel, deformations=(sag,), cmp_shift=1.0, yaw_deg=123.0, seed=seed)
         )
-        reg = register(pair.ref.xyz, pair.cmp.xyz)
+        reg = register_epochs(pair.ref, pair.cmp, ANY_AXIAL).registration
         t, m, x = pair.truth.transform, reg.transform, pair.cmp.xyz
         e = (x @ m[:3, :3].T + m[:3, 3]) - (x @ t[:3, :3].T + t[:3, 3])
         axis = pair.truth.centerline.frame_at(np.array([12.0]))[0][0]

@@ -27,9 +27,9 @@ import time
 import numpy as np
 
 from tunneldef.centerline import extract_centerline
-from tunneldef.centerline.curve import Centerline
 from tunneldef.centerline.fit import fit_cubic_bspline, fit_line
-from tunneldef.config import Config
+from tunneldef.config import CenterlineConfig
+from tunneldef.curve import Centerline
 from tunneldef.synth import SectionSpec, TunnelSpec, make_tunnel
 
 
@@ -108,7 +108,7 @@ def main() -> None:
         rows.append(("nurbs", res.centerline, t_nurbs, _note(res, spec, len(cloud.xyz))))
         t0 = time.perf_counter()
         single = extract_centerline(
-            cloud.xyz, config=Config().replace(centerline={"max_iterations": 0})
+            cloud.xyz, settings=CenterlineConfig(max_iterations=0)
         )
         dt = time.perf_counter() - t0
         rows.append(("nurbs 1 pass", single.centerline, dt, _note(single, spec, len(cloud.xyz))))

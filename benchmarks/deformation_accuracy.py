@@ -50,9 +50,10 @@ from pathlib import Path
 
 import numpy as np
 
-from tunneldef.centerline.curve import Centerline
+from tunneldef.config import Config, DeformationConfig
+from tunneldef.curve import Centerline
 from tunneldef.deformation import compute_deformation
-from tunneldef.deformation.robust import robust_deformation, voxel_cores
+from tunneldef.deformation.local_surface import robust_deformation, voxel_cores
 from tunneldef.deformation.shell import classify_shell
 from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
 
@@ -69,12 +70,19 @@ TARGETS = {"mean": 3.0, "p95": 8.0, "peak": 2.0, "recall": 0.9, "fa": 0.5}
 # --------------------------------------------------------------------------- methods
 
 
+#: the raw registration, its along-axis uncertainty reported rather than refused
+ANY_AXIAL = Config().replace(registration={"max_axial_uncertainty": float("inf")})
+
 def run_knn(ref, cmp_, line, ctx):
-    return compute_deformation(ref, cmp_, line, method="knn").deformation
+    return compute_deformation(
+        ref, cmp_, line, settings=DeformationConfig(method="knn")
+    ).deformation
 
 
 def run_robust(ref, cmp_, line, ctx):
-    return compute_deformation(ref, cmp_, line, method="robust").deformation
+    return compute_deformation(
+        ref, cmp_, line, settings=DeformationConfig(method="robust")
+    ).deformation
 
 
 def run_c2c(ref, cmp_, line, ctx):
@@ -276,7 +284,7 @@ def synth_block(methods, quick, seeds, density):
 def registration_block(methods, seeds, density):
     """The s = 15 mm, 15 mm sag pair of every seed, registered by our own registration."""
     try:
-        from tunneldef.registration import register
+        from tunneldef.pipeline import register_epochs
     except ImportError as exc:
         print(f"\n(registration block skipped: {exc})")
         return
@@ -292,7 +300,7 @@ def registration_block(methods, seeds, density):
         tr = pair.truth
         t0 = time.perf_counter()
         try:
-            reg = register(pair.ref.xyz, pair.cmp.xyz)
+            reg = register_epochs(pair.ref, pair.cmp, ANY_AXIAL).registration
         except Exception as exc:
             print(f"(seed {seed}: registration failed: {type(exc).__name__}: {exc})")
             continue
@@ -412,7 +420,7 @@ def speed_block(n_points, seed, repeats=3):
     length = max(10.0, n_points / per_metre)
     small = _speed_pair(10.0, seed)
     w0 = time.perf_counter()
-    compute_deformation(*small, method="robust")
+    compute_deformation(*small, settings=DeformationConfig(method="robust"))
     warm = time.perf_counter() - w0
     ref, cmp_, line = _speed_pair(length, seed)
     print(
@@ -425,9 +433,14 @@ def speed_block(n_points, seed, repeats=3):
         ("classify_shell (compared)", lambda: classify_shell(cmp_, line)),
         (
             "compute_deformation robust",
-            lambda: compute_deformation(ref, cmp_, line, method="robust"),
+            lambda: compute_deformation(
+                ref, cmp_, line, settings=DeformationConfig(method="robust")
+            ),
         ),
-        ("compute_deformation knn", lambda: compute_deformation(ref, cmp_, line, method="knn")),
+        (
+            "compute_deformation knn",
+            lambda: compute_deformation(ref, cmp_, line, settings=DeformationConfig(method="knn")),
+        ),
     ):
         walls, cpus = [], []
         for _ in range(repeats):

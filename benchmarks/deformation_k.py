@@ -22,6 +22,7 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tunneldef.config import DeformationConfig
 from tunneldef.deformation import compute_deformation, danger_zones
 from tunneldef.deformation.knn import knn_counterparts
 from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
@@ -57,7 +58,13 @@ def k_table(seed: int, noise: float, density: float) -> None:
     print("-" * len(head))
     for k in range(1, 9):
         t0 = time.perf_counter()
-        d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, k=k, shell=shell)
+        d = compute_deformation(
+            pair.ref.xyz,
+            t.cmp_xyz_in_ref,
+            t.centerline,
+            settings=DeformationConfig(method="knn", k=k),
+            shell=shell,
+        )
         el = time.perf_counter() - t0
         a = np.abs(d.deformation[still])
         _, zones = danger_zones(d, threshold=0.02)

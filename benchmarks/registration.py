@@ -117,12 +117,8 @@ def run(case: str, ref, cmp, truth, sag, shell, methods, config) -> list[dict]:
         try:
             if method == "centerline" and cls is not None:
                 reg = register(
-                    ref,
-                    cmp,
-                    method=method,
-                    ref_centerline=cls[0],
-                    cmp_centerline=cls[1],
-                    config=cfg,
+                    ref, cmp, cls[0].centerline, cls[1].centerline, method=method,
+                    settings=cfg.registration,
                 )
                 dt = time.perf_counter() - t0 + cls[2]
             else:
@@ -130,18 +126,15 @@ def run(case: str, ref, cmp, truth, sag, shell, methods, config) -> list[dict]:
                     from tunneldef.centerline import extract_centerline
 
                     te = time.perf_counter()
-                    cls = (extract_centerline(ref, config=cfg), extract_centerline(cmp, config=cfg))
+                    lines = {"slicing": cfg.slicing, "settings": cfg.centerline}
+                    cls = (extract_centerline(ref, **lines), extract_centerline(cmp, **lines))
                     cls = (*cls, time.perf_counter() - te)
                     reg = register(
-                        ref,
-                        cmp,
-                        method=method,
-                        ref_centerline=cls[0],
-                        cmp_centerline=cls[1],
-                        config=cfg,
+                        ref, cmp, cls[0].centerline, cls[1].centerline, method=method,
+                        settings=cfg.registration,
                     )
                 else:
-                    reg = register(ref, cmp, method=method, config=cfg)
+                    reg = register(ref, cmp, method=method, settings=cfg.registration)
                 dt = time.perf_counter() - t0
         except TunnelDefError as exc:
             rows.append({"case": case, "method": label, "error": str(exc)})

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from tunneldef.centerline import CenterlineResult, extract_centerline
-from tunneldef.centerline.curve import Centerline
 from tunneldef.centerline.fit import fit_centerline, fit_cubic_bspline, fit_line, fit_nurbs
 from tunneldef.centerline.roof_floor import roof_floor_lines
 from tunneldef.centerline.slicing import slice_along_axis, slice_stations
 from tunneldef.centerline.walls import linear_kernel_density, wall_lines
-from tunneldef.config import Config
+from tunneldef.config import CenterlineConfig, Config
+from tunneldef.curve import Centerline
 from tunneldef.errors import InvalidCloudError, NotATunnelError
 from tunneldef.synth import PairSpec, SectionSpec, TunnelSpec, make_pair, make_tunnel
 
@@ -135,7 +135,7 @@ def test_centerline_meta_is_json_ready(straight_result) -> None:  # noqa: ANN001
 
 def test_straight_tunnel_not_worse_after_reslicing(straight, straight_result) -> None:  # noqa: ANN001
     xyz, truth, _ = straight
-    single = extract_centerline(xyz, config=Config().replace(centerline={"max_iterations": 0}))
+    single = extract_centerline(xyz, settings=CenterlineConfig(max_iterations=0))
     assert single.passes == 1 and single.axis is None
     assert straight_result.passes >= 2
     p95_single = np.percentile(centre_errors(single.centerline, truth), 95)
@@ -148,7 +148,9 @@ def test_curved_tunnel_radius_120() -> None:
     cloud, truth = make_tunnel(spec, seed=RNG_SEED)
     calls: list[tuple[str, float]] = []
     cfg = Config().replace(slicing={"step": 1.0})  # the paper's slice spacing (§4.1)
-    res = extract_centerline(cloud.xyz, config=cfg, progress=lambda s, f: calls.append((s, f)))
+    res = extract_centerline(
+        cloud.xyz, slicing=cfg.slicing, progress=lambda s, f: calls.append((s, f))
+    )
     err = centre_errors(res.centerline, truth.centerline)
     assert np.percentile(err, 95) <= 0.03
     # the bend is real: a straight line would be metres off
@@ -217,7 +219,7 @@ def test_compared_epoch_of_a_pair_maps_onto_the_design_axis() -> None:
     n = len(pair.cmp.xyz)
     cfg = Config().replace(centerline={"max_points": 22_000})  # thinned at random first
     assert n > 28_000
-    res = extract_centerline(pair.cmp.xyz, config=cfg)
+    res = extract_centerline(pair.cmp.xyz, slicing=cfg.slicing, settings=cfg.centerline)
     assert sum(r.n_points for r in res.slices) < 0.9 * n * cfg.slicing.thickness / cfg.slicing.step
     in_ref = res.centerline.transformed(pair.truth.transform)
     assert np.percentile(centre_errors(in_ref, pair.truth.centerline), 95) <= 0.02

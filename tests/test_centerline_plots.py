@@ -19,7 +19,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 def small() -> tuple[np.ndarray, object]:
     cloud, _ = make_tunnel(TunnelSpec(length=12.0, density=100.0, equipment=True), seed=4)
     cfg = Config().replace(centerline={"max_iterations": 1})
-    return cloud.xyz, extract_centerline(cloud.xyz, config=cfg)
+    return cloud.xyz, extract_centerline(cloud.xyz, slicing=cfg.slicing, settings=cfg.centerline)
 
 
 def test_writes_the_five_figures(small, tmp_path: Path) -> None:  # noqa: ANN001

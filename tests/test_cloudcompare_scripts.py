@@ -21,6 +21,7 @@ import pytest
 from conftest import REPO
 
 from tunneldef.cloud import Cloud
+from tunneldef.config import DeformationConfig
 
 SCRIPTS = REPO / "cloudcompare_scripts"
 CLOUDCOMPARE = shutil.which("CloudCompare")
@@ -334,7 +335,9 @@ def _registered_pair():
         )
     )
     cmp_xyz = pair.truth.cmp_xyz_in_ref
-    d = compute_deformation(pair.ref.xyz, cmp_xyz, pair.truth.centerline, method="knn")
+    d = compute_deformation(
+        pair.ref.xyz, cmp_xyz, pair.truth.centerline, settings=DeformationConfig(method="knn")
+    )
     return pair, cmp_xyz, np.asarray(d.deformation, dtype=np.float64)
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from tunneldef.config import Config, dump_config, load_config
 from tunneldef.errors import ConfigError
-from tunneldef.report.summary import write_csv, write_json, write_text_atomic
+from tunneldef.textfiles import write_csv, write_json, write_text_atomic
 
 
 def test_paper_defaults() -> None:
@@ -32,6 +32,10 @@ def test_dump_loads_back_to_the_same_config(tmp_path: Path) -> None:
         ("[deformation]\nk = 'three'\n", r"deformation.k must be int"),
         ("[deformation]\nk = true\n", r"deformation.k must be int"),
         ("[danger\n", r"not valid TOML"),
+        ("[deformation]\nmethod = 'm3c2'\n", r"deformation.method must be one of 'robust', 'knn'"),
+        ("[danger]\nrule = 'max'\n", r"danger.rule must be one of"),
+        ("[registration]\nmethod = 'icp'\n", r"registration.method must be one of"),
+        ("[centerline]\nvertical = 'up'\n", r"centerline.vertical must be one of"),
     ],
 )
 def test_bad_config_files(tmp_path: Path, text: str, message: str) -> None:
@@ -75,3 +79,18 @@ def test_json_has_no_nan(tmp_path: Path) -> None:
     p = write_json(tmp_path / "n.json", {"a": float("nan"), "b": np.array([1.0, np.inf]),
                                          "c": [np.float32(2.5), {"d": np.nan}]})
     assert json.loads(p.read_text()) == {"a": None, "b": [1.0, None], "c": [2.5, {"d": None}]}
+
+
+def test_configs_share_no_mutable_default() -> None:
+    import dataclasses
+
+    from tunneldef import config as cfgmod
+
+    # a list or dict default is copied per instance, never shared
+    @dataclasses.dataclass
+    class Holder:
+        values: list = cfgmod._p([1, 2], "test")
+
+    a, b = Holder(), Holder()
+    a.values.append(3)
+    assert b.values == [1, 2]

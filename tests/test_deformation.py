@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import importlib.util
-from functools import partial
 
 import numpy as np
 import pytest
 
-from tunneldef.centerline.curve import Centerline, Projection
-from tunneldef.config import Config
+from tunneldef.config import Config, DeformationConfig
+from tunneldef.curve import Centerline, Projection
 from tunneldef.deformation import (
     DeformationResult,
     danger_zones,
@@ -29,7 +28,12 @@ from tunneldef.errors import ConfigError, InvalidCloudError
 from tunneldef.synth import DeformationSpec, PairSpec, SectionSpec, TunnelSpec, make_pair
 
 # these tests check the paper's method (§3.3): KNN centroid, unless a test says otherwise
-compute_deformation = partial(_compute_deformation, method="knn")
+KNN = DeformationConfig(method="knn")
+
+
+def compute_deformation(*args, settings=KNN, **kwargs):
+    """The stage with the paper's KNN centroid unless ``settings`` says otherwise."""
+    return _compute_deformation(*args, settings=settings, **kwargs)
 
 AMP = 0.03
 SAG, BULGE, HEAVE, OUTWARD = 6.0, 11.0, 15.0, 6.0  # chainages of the synthetic deformations
@@ -127,13 +131,21 @@ def test_empty_input_is_rejected(pair):
 def test_k_below_one_through_compute_deformation(pair):
     t = pair.truth
     with pytest.raises(InvalidCloudError, match=r"must be an integer >= 1, got 0"):
-        compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref[:100], t.centerline, k=0)
+        compute_deformation(
+            pair.ref.xyz, t.cmp_xyz_in_ref[:100], t.centerline,
+            settings=DeformationConfig(method="knn", k=0),
+        )
 
 
 def test_unknown_method_and_bad_shell_mask(pair):
     t = pair.truth
     with pytest.raises(ConfigError, match="unknown deformation method 'icp'"):
-        compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref[:10], t.centerline, method="icp")
+        compute_deformation(
+            pair.ref.xyz,
+            t.cmp_xyz_in_ref[:10],
+            t.centerline,
+            settings=DeformationConfig(method="icp"),
+        )
     with pytest.raises(InvalidCloudError, match=r"shell mask has shape \(3,\)"):
         compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref[:10], t.centerline, shell=[1, 0, 1])
 
@@ -278,12 +290,20 @@ def test_progress_is_reported(pair):
 def test_k_from_config_and_override(pair):
     t = pair.truth
     sel = slice(0, 3000)
-    cfg = Config().replace(deformation={"k": 1})
+    cfg = Config().replace(deformation={"k": 1, "method": "knn"})
     a = compute_deformation(
-        pair.ref.xyz, t.cmp_xyz_in_ref[sel], t.centerline, config=cfg, shell=np.ones(3000, bool)
+        pair.ref.xyz,
+        t.cmp_xyz_in_ref[sel],
+        t.centerline,
+        settings=cfg.deformation,
+        shell=np.ones(3000, bool),
     )
     b = compute_deformation(
-        pair.ref.xyz, t.cmp_xyz_in_ref[sel], t.centerline, k=1, shell=np.ones(3000, bool)
+        pair.ref.xyz,
+        t.cmp_xyz_in_ref[sel],
+        t.centerline,
+        settings=DeformationConfig(method="knn", k=1),
+        shell=np.ones(3000, bool),
     )
     assert a.k == b.k == 1
     np.testing.assert_array_equal(a.deformation, b.deformation)
@@ -299,7 +319,9 @@ def test_k_from_config_and_override(pair):
 @pytest.mark.parametrize("method", ["knn", "robust"])
 def test_coal_on_the_conveyor_is_change_but_not_shell(pair, method):
     t = pair.truth
-    d = compute_deformation(pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, method=method)
+    d = compute_deformation(
+        pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, settings=DeformationConfig(method=method)
+    )
     coal = t.label == 2
     assert coal.sum() > 500
     assert np.mean(np.abs(d.deformation[coal]) > 0.02) > 0.5  # reported as change...
@@ -309,8 +331,8 @@ def test_coal_on_the_conveyor_is_change_but_not_shell(pair, method):
 
 
 @pytest.mark.skipif(
-    importlib.util.find_spec("tunneldef.deformation.robust") is None,
-    reason="tunneldef.deformation.robust not available",
+    importlib.util.find_spec("tunneldef.deformation.local_surface") is None,
+    reason="tunneldef.deformation.local_surface not available",
 )
 def test_robust_method_dispatch(pair):
     t = pair.truth
@@ -321,7 +343,7 @@ def test_robust_method_dispatch(pair):
             pair.ref.xyz,
             t.cmp_xyz_in_ref[near],
             t.centerline,
-            method="robust",
+            settings=DeformationConfig(method="robust"),
             shell=t.label[near] == 0,
             **kw,
         )
@@ -453,7 +475,9 @@ def test_real_drift_halves_unchanged_the_lod95_holds(drift_path):
     xyz = xyz[rng.choice(len(xyz), 600_000, replace=False)]
     half = rng.random(len(xyz)) < 0.5
     ref, cmp = xyz[half], xyz[~half]
-    d = compute_deformation(ref, cmp, extract_centerline(ref).centerline, method="robust")
+    d = compute_deformation(
+        ref, cmp, extract_centerline(ref).centerline, settings=DeformationConfig(method="robust")
+    )
     ok = d.shell & np.isfinite(d.deformation)
     assert ok.mean() > 0.7  # the rest: equipment, stray returns, the ends
     assert d.significant[ok].mean() < 0.055

@@ -17,8 +17,8 @@ import fake_pycc
 import numpy as np
 import pytest
 
-from tunneldef.centerline.curve import Centerline
 from tunneldef.cloud import Cloud
+from tunneldef.curve import Centerline
 from tunneldef.errors import NotATunnelError
 
 SHIFT = np.array([-420000.0, -5650000.0, -250.0])

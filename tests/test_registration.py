@@ -7,21 +7,22 @@ import json
 import numpy as np
 import pytest
 
-from tunneldef.config import Config
+from tunneldef.centerline import extract_centerline
+from tunneldef.config import RegistrationConfig
 from tunneldef.errors import RegistrationError
 from tunneldef.registration import METHODS, Registration, register
 from tunneldef.registration.axial import coarse_shift, fine_shift
-from tunneldef.registration.centerline import (
-    _feature_window_shift,
-    _ransac_plane,
-    normals,
-)
 from tunneldef.registration.metrics import (
     apply_transform,
     fitness,
     point_rms_error,
     rotation_error_deg,
     slice_fitness,
+)
+from tunneldef.registration.views import (
+    _feature_window_shift,
+    _ransac_plane,
+    normals,
 )
 from tunneldef.synth import (
     DeformationSpec,
@@ -33,7 +34,7 @@ from tunneldef.synth import (
 )
 
 SAG = (DeformationSpec(kind="roof_sag", chainage=15.0, length=4.0, amplitude=0.03),)
-NO_REFINE = Config().replace(registration={"refine": False})
+NO_REFINE = RegistrationConfig(refine=False)
 
 
 def _pair(
@@ -64,6 +65,12 @@ def _truth_centerlines(pair):
     return ref_cl, ref_cl.transformed(np.linalg.inv(pair.truth.transform))
 
 
+def _extracted(pair):
+    """Both epochs' extracted centrelines (stage 1), each in its own frame."""
+    return (extract_centerline(pair.ref.xyz).centerline,
+            extract_centerline(pair.cmp.xyz).centerline)
+
+
 def _errors(reg, pair):
     shell = pair.truth.label == 0
     t = pair.truth.transform
@@ -81,7 +88,7 @@ def test_centerline_registration_meets_targets(radius, yaw):
     pair = _pair(radius=radius, yaw=yaw, density=80.0)
     ref_cl, cmp_cl = _truth_centerlines(pair)
     reg = register(
-        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, config=NO_REFINE
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, settings=NO_REFINE
     )
     rms, rot = _errors(reg, pair)
     assert rms <= 0.01, rms
@@ -95,7 +102,7 @@ def test_centerline_registration_meets_targets(radius, yaw):
 
 def test_registration_through_real_centreline_extraction():
     pair = _pair(radius=80.0, yaw=211.0, kind="arch", length=24.0)
-    reg = register(pair.ref.xyz, pair.cmp.xyz)
+    reg = register(pair.ref.xyz, pair.cmp.xyz, *_extracted(pair))
     rms, rot = _errors(reg, pair)
     assert rms <= 0.01, rms
     assert rot <= 0.05, rot
@@ -121,7 +128,7 @@ def test_pca_direction_flip_resolved():
             pair.cmp.xyz,
             ref_centerline=ref_cl,
             cmp_centerline=cmp_cl,
-            config=NO_REFINE,
+            settings=NO_REFINE,
         )
         rms, rot = _errors(reg, pair)
         assert rms < 0.02 and rot < 0.05
@@ -138,7 +145,7 @@ def test_each_stage_does_its_part():
     pair = _pair(seed=5, yaw=300.0, tilt_deg=3.0)
     ref_cl, cmp_cl = _truth_centerlines(pair)
     reg = register(
-        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, config=NO_REFINE
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, settings=NO_REFINE
     )
     t = pair.truth.transform
     z = np.array([0.0, 0.0, 1.0])
@@ -164,8 +171,9 @@ def test_register_is_reproducible():
     # the same epochs give the same transform bit for bit, whatever the threads do (Open3D's
     # seeded RANSAC plane was not: 0.9-3.0 mm apart from run to run on one benchmark pair)
     pair = _pair(seed=4, length=20.0)
-    a = register(pair.ref.xyz, pair.cmp.xyz).transform
-    b = register(pair.ref.xyz, pair.cmp.xyz).transform
+    lines = _extracted(pair)
+    a = register(pair.ref.xyz, pair.cmp.xyz, *lines).transform
+    b = register(pair.ref.xyz, pair.cmp.xyz, *lines).transform
     np.testing.assert_array_equal(a, b)
 
 
@@ -262,7 +270,7 @@ def test_rough_rock_alone_fixes_the_axial_position(seed):
     pair = make_pair(
         PairSpec(tunnel=tunnel, deformations=SAG, cmp_shift=1.0, yaw_deg=123.0, seed=seed)
     )
-    reg = register(pair.ref.xyz, pair.cmp.xyz)
+    reg = register(pair.ref.xyz, pair.cmp.xyz, *_extracted(pair))
     err, angle = _errors(reg, pair)
     assert err < 0.006 and angle < 0.05
     # the claimed along-axis uncertainty is not an order of magnitude too small
@@ -320,13 +328,22 @@ def test_unknown_method_raises():
     assert "centerline" in METHODS
 
 
+def test_centerline_method_needs_both_centrelines():
+    # registration never runs stage 1 itself: without centrelines it says what to pass
+    ref, truth = make_tunnel(TunnelSpec(length=10, density=20), seed=1)
+    with pytest.raises(TypeError, match="needs both epochs' Centerline"):
+        register(ref.xyz, ref.xyz)
+    with pytest.raises(TypeError, match="needs both epochs' Centerline"):
+        register(ref.xyz, ref.xyz, truth.centerline, None)
+
+
 def test_fitness_and_to_dict():
     d = np.array([0.01, 0.02, 0.5])
     assert fitness(d, max_distance=0.1) == pytest.approx(np.sqrt((0.01**2 + 0.02**2) / 2))
     pair = _pair(seed=9, length=20.0, density=60.0)
     ref_cl, cmp_cl = _truth_centerlines(pair)
     reg = register(
-        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, config=NO_REFINE
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=cmp_cl, settings=NO_REFINE
     )
     assert isinstance(reg, Registration)
     out = json.loads(json.dumps(reg.to_dict()))
@@ -367,7 +384,7 @@ def test_refinement_repairs_a_bad_centreline_and_stays_off_otherwise():
     bent[:3, 3] = c - rot @ c
     bad = cmp_cl.transformed(bent)
     off = register(
-        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=bad, config=NO_REFINE
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=bad, settings=NO_REFINE
     )
     fixed = register(pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=bad)
     assert _errors(off, pair)[1] > 0.3

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tunneldef.centerline.curve import Centerline
+from tunneldef.curve import Centerline
 from tunneldef.deformation.shell import classify_shell, outer_envelope, shell_envelope, shell_mask
 from tunneldef.errors import ConfigError, InvalidCloudError
 from tunneldef.synth import DeformationSpec, PairSpec, SectionSpec, TunnelSpec, make_pair

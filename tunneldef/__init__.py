@@ -15,20 +15,37 @@ from .errors import TunnelDefError
 
 __version__ = "0.1.0"
 
-__all__ = ["Cloud", "Config", "TunnelDefError", "load_config", "read", "write", "__version__"]
+__all__ = [
+    "Cloud",
+    "Config",
+    "TunnelDefError",
+    "load_config",
+    "read",
+    "write",
+    "detect",
+    "extract_centerline",
+    "register",
+    "compute_deformation",
+    "__version__",
+]
+
+#: The main verbs, loaded on first use so that ``import tunneldef`` stays light.
+_VERBS = {
+    "read": ("tunneldef.io", "read"),
+    "write": ("tunneldef.io", "write"),
+    "detect": ("tunneldef.pipeline", "detect"),
+    "extract_centerline": ("tunneldef.centerline", "extract_centerline"),
+    "register": ("tunneldef.registration", "register"),
+    "compute_deformation": ("tunneldef.deformation", "compute_deformation"),
+}
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 
-def read(path, **kwargs):  # noqa: ANN001, ANN201 - thin re-export, see tunneldef.io.read
-    """Read a point cloud file (PLY, LAS, LAZ, PCD, XYZ/TXT); see :func:`tunneldef.io.read`."""
-    from .io import read as _read
+def __getattr__(name: str):  # noqa: ANN202 - module attribute hook (PEP 562)
+    if name in _VERBS:
+        import importlib
 
-    return _read(path, **kwargs)
-
-
-def write(path, cloud, **kwargs):  # noqa: ANN001, ANN201 - thin re-export
-    """Write a point cloud file atomically; see :func:`tunneldef.io.write`."""
-    from .io import write as _write
-
-    return _write(path, cloud, **kwargs)
+        module, attr = _VERBS[name]
+        return getattr(importlib.import_module(module), attr)
+    raise AttributeError(f"module 'tunneldef' has no attribute {name!r}")

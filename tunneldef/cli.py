@@ -10,14 +10,14 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from . import __version__
 from .errors import TunnelDefError
-from .report.summary import to_json, write_csv, write_text_atomic
+from .progress import StageLogger
+from .textfiles import to_json, write_csv, write_text_atomic
 
 log = logging.getLogger("tunneldef")
 
@@ -25,26 +25,6 @@ EXIT_USER_ERROR = 2
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-class _StageProgress:
-    """Progress callback that logs one line per stage (and per 25 % inside long stages)."""
-
-    def __init__(self, logger: logging.Logger) -> None:
-        self._log = logger
-        self._stage: str | None = None
-        self._quarter = -1
-        self._start = time.perf_counter()
-
-    def __call__(self, stage: str, fraction: float) -> None:
-        quarter = int(fraction * 4)
-        if stage != self._stage:
-            self._stage, self._quarter = stage, quarter
-            self._log.info("[%5.1f s] %s", time.perf_counter() - self._start, stage)
-        elif quarter > self._quarter and 0 < quarter < 4:
-            self._quarter = quarter
-            self._log.info("[%5.1f s] %s: %d %%", time.perf_counter() - self._start, stage,
-                           quarter * 25)
 
 
 def _setup_logging(quiet: bool, verbose: bool) -> tuple[logging.Handler, int, bool]:
@@ -186,8 +166,10 @@ def cmd_centerline(args: argparse.Namespace) -> int:
     _check_output(out, [src])
     config = _load_config(args)
     cloud = read(src, strict=args.strict)
-    progress = None if args.quiet else _StageProgress(log)
-    result = extract_centerline(cloud.xyz, config=config, progress=progress)
+    progress = None if args.quiet else StageLogger(log)
+    result = extract_centerline(
+        cloud.xyz, slicing=config.slicing, settings=config.centerline, progress=progress
+    )
     _write_centerline(result, out)
     ok = sum(1 for r in result.table() if r.get("ok", True))
     log.info("centreline: %.2f m, %d slices (%d usable) -> %s", result.centerline.length,
@@ -237,7 +219,7 @@ def cmd_register(args: argparse.Namespace) -> int:
     if args.method:
         config = config.replace(registration={"method": args.method})
     ref, cmp = read(ref_path, strict=args.strict), read(cmp_path, strict=args.strict)
-    progress = None if args.quiet else _StageProgress(log)
+    progress = None if args.quiet else StageLogger(log)
     reg = register_epochs(ref, cmp, config, progress=progress).registration
     moved = cmp.transformed(reg.transform)
     write(out, moved)
@@ -267,7 +249,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     ref, cmp = read(ref_path, strict=args.strict), read(cmp_path, strict=args.strict)
     log.info("reference %s: %s points; compared %s: %s points", ref_path.name, f"{len(ref):,}",
              cmp_path.name, f"{len(cmp):,}")
-    progress = None if args.quiet else _StageProgress(log)
+    progress = None if args.quiet else StageLogger(log)
     result = detect(ref, cmp, config, progress=progress)
     write(out, result.cloud)
     summary = result.summary()
@@ -324,7 +306,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
     run_demo(Path(args.out_dir), seed=args.seed, quick=args.quick,
-             progress=None if args.quiet else _StageProgress(log))
+             progress=None if args.quiet else StageLogger(log))
     return 0
 
 

@@ -109,9 +109,9 @@ class Cloud:
 
     def transformed(self, transform: np.ndarray) -> Cloud:
         """A copy with coordinates mapped by a 4 x 4 rigid transform (fields unchanged)."""
-        t = np.asarray(transform, dtype=np.float64)
-        xyz = self.xyz @ t[:3, :3].T + t[:3, 3]
-        return Cloud(xyz, dict(self.fields), dict(self.meta))
+        from .transforms import apply_transform
+
+        return Cloud(apply_transform(transform, self.xyz), dict(self.fields), dict(self.meta))
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:

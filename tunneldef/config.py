@@ -11,7 +11,9 @@ absent keeps its default.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,14 +30,50 @@ __all__ = [
     "Config",
     "load_config",
     "dump_config",
+    "check_positive",
 ]
 
 
-def _p(default: Any, source: str) -> Any:
-    """A dataclass field with a documented source for its default."""
+def check_positive(name: str, value: Any, *, unit: str = "m", allow_zero: bool = False) -> float:
+    """``value`` as a float if it is a finite number > 0 (>= 0 with ``allow_zero``).
+
+    Raises
+    ------
+    ConfigError
+        Naming the parameter, its unit and the value given.
+    """
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = float("nan")
+    ok = v >= 0.0 if allow_zero else v > 0.0
+    if not (math.isfinite(v) and ok):
+        sign = "non-negative" if allow_zero else "positive"
+        raise ConfigError(f"{name} must be a {sign} number ({unit}), got {value!r}")
+    return v
+
+
+def _p(default: Any, source: str, choices: tuple[str, ...] = ()) -> Any:
+    """A dataclass field with a documented source for its default (and, for text, its
+    allowed values, checked whenever a config is built)."""
+    meta = {"source": source, "choices": choices}
     if isinstance(default, (list, dict)):
-        return field(default_factory=lambda: default, metadata={"source": source})
-    return field(default=default, metadata={"source": source})
+        # each instance its own copy: a shared mutable default would leak between configs
+        return field(default_factory=lambda: copy.deepcopy(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def _check_choices(section: Any) -> None:
+    """Raise ConfigError for a text value outside its field's allowed values."""
+    name = type(section).__name__.removesuffix("Config").lower()
+    for f in dataclasses.fields(section):
+        allowed = f.metadata.get("choices", ())
+        value = getattr(section, f.name)
+        if allowed and value not in allowed:
+            raise ConfigError(
+                f"config key {name}.{f.name} must be one of {', '.join(map(repr, allowed))}, "
+                f"got {value!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -83,14 +121,16 @@ class CenterlineConfig:
     min_slices: int = _p(5, "ours: fewer accepted slices and there is no centreline")
     max_points: int = _p(2_000_000, "ours: larger clouds are thinned at random (seeded) before "
                                     "slicing; the lines need ~1e4 points per slice, not 1e5")
-    vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)")
+    vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)",
+                       ("world", "pca"))
 
 
 @dataclass(frozen=True)
 class RegistrationConfig:
     """Registration of the compared epoch onto the reference (paper §3.2)."""
 
-    method: str = _p("centerline", "paper §3.2; also icp_point, icp_plane, gicp, ndt")
+    method: str = _p("centerline", "paper §3.2; also icp_point, icp_plane, gicp, ndt",
+                     ("centerline", "icp_point", "icp_plane", "gicp", "ndt"))
     floor_ransac_distance: float = _p(0.05, "ours: RANSAC inlier distance for the floor plane")
     plan_angle_step_deg: float = _p(0.01, "ours: smallest rotation step of the plan alignment")
     refine: bool = _p(
@@ -110,7 +150,8 @@ class RegistrationConfig:
     )
     voxel: float = _p(0.05, "ours: voxel size for refinement and baselines, m")
     coarse_vertical: str = _p("world", "ours: 'world' keeps z up in the coarse PCA (levelled "
-                              "SLAM scans; 2 direction candidates), 'pca' = paper §3.2.1 (4)")
+                              "SLAM scans; 2 direction candidates), 'pca' = paper §3.2.1 (4)",
+                              ("world", "pca"))
     axial_search: float = _p(
         10.0,
         "ours: largest along-axis shift searched after PCA, m (0: half the summed lengths; "
@@ -136,7 +177,8 @@ class DeformationConfig:
     """Per-point and per-section deformation (paper §3.3)."""
 
     method: str = _p("robust", "ours: local-surface estimator, noise floor ~2 mm vs ~25 mm for "
-                     "'knn', the paper's §3.3.1 KNN centroid (benchmarks/deformation_accuracy.py)")
+                     "'knn', the paper's §3.3.1 KNN centroid (benchmarks/deformation_accuracy.py)",
+                     ("robust", "knn"))
     k: int = _p(3, "paper §4.3, Table 3: k = 3 nearest neighbours")
     section_step: float = _p(1.0, "paper Table 4: sections 1 m apart")
     section_thickness: float = _p(0.2, "ours: points within +-0.1 m of a section's chainage")
@@ -159,7 +201,8 @@ class DangerConfig:
     """Danger classification (paper §4.3, Fig. 22)."""
 
     threshold: float = _p(0.05, "ours: |deformation| above 50 mm is flagged")
-    rule: str = _p("absolute", "'absolute' threshold, or 'mean' (paper §4.3: mean |deformation|)")
+    rule: str = _p("absolute", "'absolute' threshold, or 'mean' (paper §4.3: mean |deformation|)",
+                   ("absolute", "mean"))
     min_zone_length: float = _p(0.2, "ours: danger runs shorter along the chainage are dropped, m")
     merge_gap: float = _p(0.5, "ours: danger runs closer than this along the chainage merge, m")
     neighbours: int = _p(64, "ours: judged on the median of this many nearest shell points "
@@ -209,6 +252,7 @@ def _from_dict(base: Config, data: dict[str, Any]) -> Config:
                 )
             checked[key] = value
         changes[section] = dataclasses.replace(current, **checked)
+        _check_choices(changes[section])
     return dataclasses.replace(base, **changes)
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from .config import Config
 from .progress import ProgressCallback
+from .transforms import apply_transform
 
 __all__ = ["demo_spec", "run_demo"]
 
@@ -102,7 +103,7 @@ def run_demo(
     from .io import write
     from .pipeline import detect
     from .report.figures import plot_cross_section, plot_danger_map, plot_deformation_map
-    from .report.summary import write_json
+    from .textfiles import write_json
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -158,5 +159,5 @@ def _registration_error(transform: np.ndarray, truth: Any) -> float:
     x = truth.cmp_xyz_in_ref
     t = np.asarray(truth.transform, float)
     src = (x - t[:3, 3]) @ t[:3, :3]  # back to the compared frame
-    est = src @ np.asarray(transform)[:3, :3].T + np.asarray(transform)[:3, 3]
+    est = apply_transform(transform, src)
     return float(np.sqrt(np.mean(np.sum((est - x) ** 2, axis=1))))

@@ -15,6 +15,7 @@ import numpy as np
 
 from .cloud import check_points
 from .errors import NotATunnelError
+from .spatial import random_subset
 
 __all__ = ["TunnelFrame", "principal_frame", "pca_axes"]
 
@@ -61,20 +62,13 @@ class TunnelFrame:
         return float(np.sqrt(self.variances[0] / max(self.variances[1], 1e-12)))
 
 
-def _subsample(xyz: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray:
-    if xyz.shape[0] <= max_points:
-        return xyz
-    rng = np.random.default_rng(seed)
-    return xyz[rng.choice(xyz.shape[0], max_points, replace=False)]
-
-
 def pca_axes(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centroid, principal axes (rows, by decreasing variance) and variances of points.
 
     The axes form a right-handed basis; the first axis is oriented so that its largest world
     component is positive (a deterministic choice: PCA itself has no sign).
     """
-    pts = _subsample(check_points(xyz, min_points=3), _MAX_PCA_POINTS)
+    pts = random_subset(check_points(xyz, min_points=3), _MAX_PCA_POINTS)
     centroid = pts.mean(axis=0)
     cov = np.cov((pts - centroid).T)
     w, v = np.linalg.eigh(cov)
@@ -117,7 +111,7 @@ def principal_frame(
     NotATunnelError
         If the cloud is not elongated enough to define an axis.
     """
-    pts = _subsample(check_points(xyz, min_points=10), _MAX_PCA_POINTS)
+    pts = random_subset(check_points(xyz, min_points=10), _MAX_PCA_POINTS)
     centroid = pts.mean(axis=0)
     if vertical == "pca":
         _, axes, _ = pca_axes(pts)

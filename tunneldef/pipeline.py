@@ -17,14 +17,15 @@ from typing import Any
 import numpy as np
 
 from . import __version__
-from .centerline.curve import Centerline
 from .cloud import Cloud, check_points
 from .config import Config
+from .curve import Centerline
 from .errors import EpochMismatchError, RegistrationError
 from .frame import principal_frame
-from .progress import ProgressCallback, report
+from .progress import ProgressCallback, notify, under
 
-__all__ = ["detect", "register_epochs", "Result", "Registered", "OUTPUT_FIELDS"]
+__all__ = ["detect", "register_epochs", "check_epochs", "Result", "RegisteredPair",
+           "OUTPUT_FIELDS"]
 
 log = logging.getLogger(__name__)
 
@@ -35,18 +36,6 @@ OUTPUT_FIELDS = ("deformation", "deformation_horizontal", "deformation_vertical"
 _MIN_POINTS = 1000
 _MAX_SCALE_RATIO = 4.0
 _MIN_OVERLAP = 0.2
-
-
-def _stage(progress: ProgressCallback | None, name: str) -> ProgressCallback | None:
-    """A callback that reports a sub-step under a stage label."""
-    if progress is None:
-        return None
-
-    def cb(step: str, fraction: float) -> None:
-        same = not step or step.lower() == name.split()[-1].lower()
-        progress(name if same else f"{name}: {step}", fraction)
-
-    return cb
 
 
 def check_epochs(ref: Cloud, cmp: Cloud) -> None:
@@ -71,7 +60,7 @@ def check_epochs(ref: Cloud, cmp: Cloud) -> None:
 
 
 @dataclass
-class Registered:
+class RegisteredPair:
     """Both epochs' centreline extractions and the registration of compared onto reference."""
 
     ref_extraction: Any
@@ -82,12 +71,12 @@ class Registered:
 def register_epochs(
     ref: Cloud, cmp: Cloud, config: Config | None = None, *,
     progress: ProgressCallback | None = None,
-) -> Registered:
+) -> RegisteredPair:
     """Extract both centrelines and register the compared epoch onto the reference.
 
     Returns
     -------
-    Registered
+    RegisteredPair
         ``registration.transform`` maps compared coordinates into the reference frame.
     """
     from .centerline import extract_centerline
@@ -95,14 +84,13 @@ def register_epochs(
 
     config = config or Config()
     check_epochs(ref, cmp)
-    ref_ex = extract_centerline(ref.xyz, config=config, progress=_stage(progress,
-                                                                        "reference centreline"))
-    cmp_ex = extract_centerline(cmp.xyz, config=config, progress=_stage(progress,
-                                                                        "compared centreline"))
+    lines = {"slicing": config.slicing, "settings": config.centerline}
+    ref_ex = extract_centerline(ref.xyz, **lines, progress=under(progress, "reference centreline"))
+    cmp_ex = extract_centerline(cmp.xyz, **lines, progress=under(progress, "compared centreline"))
     _check_section_sizes(ref_ex, cmp_ex)
-    reg = register(ref.xyz, cmp.xyz, method=config.registration.method,
-                   ref_centerline=ref_ex, cmp_centerline=cmp_ex, config=config,
-                   progress=_stage(progress, "registration"))
+    reg = register(ref.xyz, cmp.xyz, ref_ex.centerline, cmp_ex.centerline,
+                   method=config.registration.method, settings=config.registration,
+                   progress=under(progress, "registration"))
     limit = config.registration.max_axial_uncertainty
     if not reg.axial_uncertainty <= limit:
         raise RegistrationError(
@@ -111,7 +99,7 @@ def register_epochs(
             "along the axis (chamber, bend, width change, rough rock); set "
             "registration.max_axial_uncertainty = inf to accept it anyway"
         )
-    return Registered(ref_ex, cmp_ex, reg)
+    return RegisteredPair(ref_ex, cmp_ex, reg)
 
 
 def _check_section_sizes(ref_ex: Any, cmp_ex: Any) -> None:
@@ -246,29 +234,30 @@ def detect(
     transform = np.asarray(reg.transform, dtype=np.float64)
     moved = cmp.transformed(transform)
     ref_cl = reg_all.ref_extraction.centerline
-    overlap = float(np.mean(ref_cl.project(moved.xyz).inside))
+    projection = ref_cl.project(moved.xyz)
+    overlap = float(np.mean(projection.inside))
     if overlap < _MIN_OVERLAP:
         raise EpochMismatchError(
             f"only {100 * overlap:.0f} % of the compared points lie along the reference "
             "centreline after registration; do the epochs cover the same tunnel?"
         )
-    d = compute_deformation(ref.xyz, moved.xyz, ref_cl, method=config.deformation.method,
-                            config=config, progress=_stage(progress, "deformation"))
+    d = compute_deformation(ref.xyz, moved.xyz, ref_cl, settings=config.deformation,
+                            projection=projection, progress=under(progress, "deformation"))
     timings["deformation"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    report(progress, "sections and danger zones", 0.0)
+    notify(progress, "sections and danger zones", 0.0)
     dc = config.danger
-    danger, zones = danger_zones(d, threshold=dc.threshold, rule=dc.rule,
+    threshold = danger_threshold(d, threshold=dc.threshold, rule=dc.rule)
+    danger, zones = danger_zones(d, threshold=threshold, rule="absolute",
                                  min_zone_length=dc.min_zone_length, merge_gap=dc.merge_gap,
                                  neighbours=dc.neighbours, peak_points=dc.peak_points)
-    threshold = danger_threshold(d, threshold=dc.threshold, rule=dc.rule)
     sections = section_statistics(d, step=config.deformation.section_step,
                                   thickness=config.deformation.section_thickness)
     fields = d.fields()
     fields["danger"] = np.asarray(danger, dtype=np.uint8)
     moved.add_fields(fields)
-    report(progress, "sections and danger zones", 1.0)
+    notify(progress, "sections and danger zones", 1.0)
     timings["sections_and_danger"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 

@@ -729,8 +729,12 @@ def apply_detect(
 def compute_centerline(cloud: Any, config: Any = None, *, progress: Any = None) -> Any:
     """Worker-thread part of "Extract centerline": ``extract_centerline`` of the core."""
     from tunneldef.centerline import extract_centerline
+    from tunneldef.config import Config
 
-    return extract_centerline(cloud.xyz, config=config, progress=progress)
+    cfg = config or Config()
+    return extract_centerline(
+        cloud.xyz, slicing=cfg.slicing, settings=cfg.centerline, progress=progress
+    )
 
 
 def apply_centerline(entity: Any, extraction: Any) -> tuple[Any, Any, str]:
@@ -748,11 +752,11 @@ def apply_centerline(entity: Any, extraction: Any) -> tuple[Any, Any, str]:
 
 
 def compute_register(ref: Any, cmp: Any, config: Any = None, *, progress: Any = None) -> Any:
-    """Worker-thread part of "Register to reference": :func:`tunneldef.registration.register`."""
-    from tunneldef.registration import register
+    """Worker-thread part of "Register to reference": both centrelines and the registration,
+    with the same checks as ``tunneldef detect`` (:func:`tunneldef.pipeline.register_epochs`)."""
+    from tunneldef.pipeline import register_epochs
 
-    method = config.registration.method if config is not None else "centerline"
-    return register(ref.xyz, cmp.xyz, method=method, config=config, progress=progress)
+    return register_epochs(ref, cmp, config, progress=progress).registration
 
 
 def apply_register(

@@ -19,7 +19,7 @@ centres (The NURBS Book, 2nd ed., §9.4.1):
 * the ends are free (not clamped to the first and last noisy centres).
 
 The curve is evaluated with ``geomdl.NURBS.Curve`` and resampled as a
-:class:`~tunneldef.centerline.curve.Centerline`.
+:class:`~tunneldef.curve.Centerline`.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ import numpy as np
 from geomdl import NURBS, helpers
 from geomdl.fitting import compute_knot_vector2
 
+from ..curve import Centerline
 from ..errors import NotATunnelError
-from .curve import Centerline
 
 __all__ = ["NurbsFit", "fit_nurbs", "fit_centerline", "fit_line", "fit_cubic_bspline"]
 

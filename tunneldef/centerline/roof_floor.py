@@ -22,7 +22,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
-from ..config import Config
+from ..config import CenterlineConfig, SlicingConfig
 from .slicing import slice_along_axis
 
 __all__ = ["RoofFloor", "roof_floor_lines", "kernel_density_1d", "refine_peak", "estimate_roll"]
@@ -168,11 +168,14 @@ def roof_floor_lines(
     return RoofFloor(floor, roof, KDE_PEAK, "", grid, dens, peaks, shares)
 
 
-def estimate_roll(local: np.ndarray, cfg: Config) -> float:
+def estimate_roll(
+    local: np.ndarray, slicing: SlicingConfig, settings: CenterlineConfig
+) -> float:
     """Roll of the section about the axis (radians) from the cross-slopes of floor and roof.
 
-    ``local`` holds the points as (along, lateral, vertical), shape (N, 3), metres; ``cfg``
-    gives the slicing and kernel parameters. Positive: the floor rises to the left.
+    ``local`` holds the points as (along, lateral, vertical), shape (N, 3), metres;
+    ``slicing`` and ``settings`` give the slicing and kernel parameters. Positive: the floor
+    rises to the left.
 
     Every metre a slice's floor and roof peaks are found (wide window only); the points within
     two windows of each are fitted with a line across the tunnel (inner 80 % of their lateral
@@ -180,12 +183,12 @@ def estimate_roll(local: np.ndarray, cfg: Config) -> float:
     taken as 0 below 0.1 degree (a levelled scan is left untouched) and when the slopes disagree
     by more than 1 degree (robust spread: a rough floor, not a rolled scan).
     """
-    c = cfg.centerline
+    c = settings
     slopes = []
     for sl in slice_along_axis(
-        local[:, 0], step=max(cfg.slicing.step, 1.0), thickness=cfg.slicing.thickness
+        local[:, 0], step=max(slicing.step, 1.0), thickness=slicing.thickness
     ):
-        if len(sl.index) < cfg.slicing.min_points:
+        if len(sl.index) < slicing.min_points:
             continue
         p = local[sl.index]
         rf = roof_floor_lines(

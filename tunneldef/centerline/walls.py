@@ -36,7 +36,7 @@ from scipy.stats import theilslopes
 from skimage.feature import canny
 from skimage.transform import hough_line, hough_line_peaks
 
-from ..config import Config
+from ..config import CenterlineConfig, SlicingConfig
 from .roof_floor import kernel_density_1d, refine_peak, roof_floor_lines
 from .slicing import slice_along_axis
 
@@ -312,12 +312,16 @@ def wall_lines(
 
 
 def estimate_wall_leans(
-    local: np.ndarray, cfg: Config, *, min_lean: float = 0.05
+    local: np.ndarray,
+    slicing: SlicingConfig,
+    settings: CenterlineConfig,
+    *,
+    min_lean: float = 0.05,
 ) -> tuple[float, float]:
     """Lean dv/dw of the left and right walls, common to the whole tunnel.
 
     ``local`` holds the points as (along, lateral, vertical), shape (N, 3), metres (section
-    levelled); ``cfg`` gives the slicing, kernel and wall-band parameters.
+    levelled); ``slicing`` and ``settings`` give the slicing, kernel and wall-band parameters.
 
     Every metre, the wall band of a slice is split at the middle of its lateral extent and each
     side's lean is measured (:func:`wall_lean`); the median over
@@ -328,12 +332,12 @@ def estimate_wall_leans(
     sides); anything else (vertical walls, an arch springing inside the wall band, rough rock)
     is measured as vertical walls, as in the paper.
     """
-    c = cfg.centerline
+    c = settings
     leans: list[tuple[float, float]] = []
     for sl in slice_along_axis(
-        local[:, 0], step=max(cfg.slicing.step, 1.0), thickness=cfg.slicing.thickness
+        local[:, 0], step=max(slicing.step, 1.0), thickness=slicing.thickness
     ):
-        if len(sl.index) < cfg.slicing.min_points:
+        if len(sl.index) < slicing.min_points:
             continue
         p = local[sl.index]
         rf = roof_floor_lines(p[:, 2], bandwidth=c.kde_bandwidth, min_share=c.min_peak_share)

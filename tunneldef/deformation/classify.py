@@ -19,11 +19,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
-from .knn import morton_order
+from ..spatial import morton_order
 from .sections import FLOOR, ROOF, SURFACE_NAMES
 
 if TYPE_CHECKING:
-    from . import DeformationResult
+    from .result import DeformationResult
 
 __all__ = [
     "RULES",

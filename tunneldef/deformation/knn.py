@@ -19,13 +19,13 @@ import logging
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..centerline.curve import Centerline, Projection
 from ..cloud import check_points
+from ..curve import Centerline, Projection
 from ..errors import InvalidCloudError
-from ..progress import ProgressCallback, report
+from ..progress import ProgressCallback, notify
+from ..spatial import morton_order
 
 __all__ = [
-    "morton_order",
     "knn_counterparts",
     "knn_counterparts_reference",
     "manhattan_split",
@@ -33,50 +33,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-_BITS = 21  # bits per axis of a 63-bit Morton code
-
-
-def _spread_bits(x: np.ndarray) -> np.ndarray:
-    """Insert two zero bits between each of the low 21 bits of ``x`` (uint64)."""
-    x = x & np.uint64(0x1FFFFF)
-    x = (x | (x << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
-    x = (x | (x << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
-    x = (x | (x << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
-    x = (x | (x << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
-    x = (x | (x << np.uint64(2))) & np.uint64(0x1249249249249249)
-    return x
-
-
-def morton_order(xyz: np.ndarray) -> np.ndarray:
-    """Permutation that sorts points along a Morton (Z-order) curve.
-
-    Parameters
-    ----------
-    xyz : ndarray, shape (N, 3)
-        Coordinates, metres.
-
-    Returns
-    -------
-    ndarray, shape (N,), intp
-        ``xyz[order]`` is spatially coherent: nearby points are mostly nearby in memory.
-
-    Notes
-    -----
-    The bounding box is quantised to 2**21 cells per axis with one cell size for all axes
-    (cubic cells), and the three cell indices are bit-interleaved into a 63-bit code.
-    """
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.shape[0] == 0:
-        return np.empty(0, dtype=np.intp)
-    lo = xyz.min(axis=0)
-    extent = float((xyz.max(axis=0) - lo).max())
-    scale = ((1 << _BITS) - 1) / extent if extent > 0 else 0.0
-    q = ((xyz - lo) * scale).astype(np.uint64)
-    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1))
-    code |= _spread_bits(q[:, 2]) << np.uint64(2)
-    return np.argsort(code, kind="stable")
-
 
 def _check_k(k: int) -> int:
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
@@ -161,7 +117,7 @@ def knn_counterparts(
         c = ref_sorted[idx].mean(axis=1)
         counterpart[sel] = c + origin
         distance[sel] = np.linalg.norm(q - c, axis=1)
-        report(progress, "deformation: nearest neighbours", min(start + chunk_size, n) / n)
+        notify(progress, "deformation: nearest neighbours", min(start + chunk_size, n) / n)
     return counterpart, distance
 
 

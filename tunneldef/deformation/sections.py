@@ -7,10 +7,10 @@ the cross-section, used to split the statistics and to name danger zones.
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -18,9 +18,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import ConfigError, InvalidCloudError
+from ..surfaces import FLOOR, LEFT_WALL, RIGHT_WALL, ROOF, SURFACE_NAMES
+from ..textfiles import write_text_atomic
 
 if TYPE_CHECKING:
-    from . import DeformationResult
+    from .result import DeformationResult
 
 __all__ = [
     "SURFACE_NAMES",
@@ -35,9 +37,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-ROOF, LEFT_WALL, RIGHT_WALL, FLOOR = 0, 1, 2, 3
-#: Names of the surface codes 0..3 (same codes as ``tunneldef.synth`` truth).
-SURFACE_NAMES: tuple[str, ...] = ("roof", "left_wall", "right_wall", "floor")
 
 _EXTENT_QUANTILE = 0.95
 _MIN_EXTENT_POINTS = 30
@@ -240,14 +239,9 @@ def write_sections_csv(rows: Sequence[dict[str, Any]], path: str | os.PathLike[s
     columns: list[str] = list(rows[0].keys()) if rows else ["chainage"]
     for r in rows[1:]:
         columns.extend(key for key in r if key not in columns)
-    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent or ".")
-    try:
-        with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
-            w = csv.DictWriter(f, fieldnames=columns, restval="")
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=columns, restval="", lineterminator="\r\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    write_text_atomic(p, buf.getvalue())

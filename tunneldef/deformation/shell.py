@@ -20,8 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from ..centerline.curve import Centerline, Projection
 from ..cloud import check_points
+from ..config import check_positive
+from ..curve import Centerline, Projection
 from ..errors import ConfigError, InvalidCloudError
 
 __all__ = ["ShellEnvelope", "classify_shell", "outer_envelope", "shell_envelope", "shell_mask"]
@@ -31,13 +32,6 @@ logger = logging.getLogger(__name__)
 _ANCHOR_QUANTILE = 0.75  # of the radii near the outer envelope, in each bin
 _MATCH_REACH = 15  # sectors either side over which two envelopes' difference is averaged
 _WINDOW_PERIOD = 20.0  # > 6 pi: angle axis offset per window in the concatenated envelopes
-
-
-def _positive(name: str, value: float) -> float:
-    value = float(value)
-    if not np.isfinite(value) or value <= 0.0:
-        raise ConfigError(f"{name} must be a positive number, got {value!r}")
-    return value
 
 
 def _bins(window: np.ndarray, theta: np.ndarray, sectors: int) -> tuple[np.ndarray, np.ndarray]:
@@ -355,8 +349,8 @@ def shell_envelope(
         As :func:`classify_shell`.
     """
     p = check_points(xyz, name="xyz")
-    window = _positive("window", window)
-    max_obliquity = _positive("max_obliquity", max_obliquity)
+    window = check_positive("window", window)
+    max_obliquity = check_positive("max_obliquity", max_obliquity)
     if int(sectors) < 8:
         raise ConfigError(f"sectors must be an integer >= 8, got {sectors!r}")
     if projection is None:
@@ -411,8 +405,8 @@ def shell_mask(
     -------
     ndarray of bool, shape (N,)
     """
-    inner_tolerance = _positive("inner_tolerance", inner_tolerance)
-    outer_tolerance = _positive("outer_tolerance", outer_tolerance)
+    inner_tolerance = check_positive("inner_tolerance", inner_tolerance)
+    outer_tolerance = check_positive("outer_tolerance", outer_tolerance)
     with np.errstate(invalid="ignore"):
         inside = offset >= -inner_tolerance * obliquity
         if other is not None:
@@ -495,8 +489,8 @@ def classify_shell(
     window (a large bulge, or a side recess such as a chamber, whose mouth the hull bridges) is
     taken for an object in front of the shell.
     """
-    inner_tolerance = _positive("inner_tolerance", inner_tolerance)
-    outer_tolerance = _positive("outer_tolerance", outer_tolerance)
+    inner_tolerance = check_positive("inner_tolerance", inner_tolerance)
+    outer_tolerance = check_positive("outer_tolerance", outer_tolerance)
     _, off, obl = shell_envelope(
         xyz,
         centerline,

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..centerline.curve import Centerline
+from ..curve import Centerline
 
 __all__ = ["AxialShift", "coarse_shift", "fine_shift", "section_image"]
 

@@ -17,6 +17,8 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from ..transforms import apply_transform
+
 __all__ = ["BASELINES", "icp_point", "icp_plane", "gicp", "ndt"]
 
 _reg = o3d.pipelines.registration
@@ -159,7 +161,7 @@ def ndt(
         d1 = -np.log(c1 + c2) - d3
         d2 = -2 * np.log((-np.log(c1 * np.exp(-0.5) + c2) - d3) / d1)
         for _ in range(iterations):
-            x = src @ t[:3, :3].T + t[:3, 3] - c0
+            x = apply_transform(t, src) - c0
             _, idx = tree.query(x, k=2, distance_upper_bound=size)
             idx = idx.reshape(len(x), -1)
             g = np.zeros(6)

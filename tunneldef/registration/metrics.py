@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..centerline.curve import Centerline
+from ..curve import Centerline
+from ..transforms import apply_transform
 
 __all__ = [
     "apply_transform",
@@ -26,10 +27,6 @@ __all__ = [
 ]
 
 
-def apply_transform(transform: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """Points (N, 3) mapped by a 4 x 4 rigid transform."""
-    t = np.asarray(transform, dtype=np.float64)
-    return np.asarray(xyz, dtype=np.float64) @ t[:3, :3].T + t[:3, 3]
 
 
 def nearest_distances(

@@ -15,7 +15,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from ..centerline.curve import Centerline
+from ..curve import Centerline
+from ..transforms import apply_transform
 
 __all__ = ["refine_stable"]
 
@@ -52,7 +53,7 @@ def refine_stable(
     total = np.eye(4)
     # round 1: the whole stable shell, wide kernel; round 2: without the worst residuals
     for kernel, reach, keep in ((3 * voxel, 5 * voxel, 1.0), (voxel, 2 * voxel, keep_fraction)):
-        moved = cmp_xyz @ total[:3, :3].T + total[:3, 3]
+        moved = apply_transform(total, cmp_xyz)
         sel = cmp_s.copy()
         if keep < 1.0:
             d, _ = tree.query(moved, workers=-1)

@@ -21,19 +21,11 @@ import numpy as np
 
 from ..centerline import CenterlineResult, SliceRecord, analyse_slice
 from ..centerline.fit import fit_centerline, fit_cubic_bspline, fit_line
+from ._figures import figures
 
 __all__ = ["plot_centerline_diagnostics"]
 
 _MAX_SCATTER = 150_000
-
-
-def _pyplot():  # noqa: ANN202
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _pick(result: CenterlineResult, k: int) -> list[SliceRecord]:
@@ -45,12 +37,14 @@ def _pick(result: CenterlineResult, k: int) -> list[SliceRecord]:
 
 
 def _slice_points(result: CenterlineResult, local: np.ndarray, rec: SliceRecord) -> np.ndarray:
-    half = result.config.slicing.thickness / 2
+    half = result.slicing.thickness / 2
     return local[np.abs(local[:, 0] - rec.station) <= half]
 
 
 def _section_and_kde(ax_sec, ax_kde, pts: np.ndarray, rec: SliceRecord, result) -> None:  # noqa: ANN001
-    rf, walls, band = analyse_slice(pts, rec.station, config=result.config)
+    rf, walls, band = analyse_slice(
+        pts, rec.station, slicing=result.slicing, settings=result.settings
+    )
     ax_sec.scatter(pts[:, 1], pts[:, 2], s=1, c="0.4", lw=0)
     ax_sec.scatter(pts[band, 1], pts[band, 2], s=1, c="tab:blue", lw=0)
     if rf.ok:
@@ -88,7 +82,9 @@ def _fig03(plt, result, local, rec, path: Path) -> Path:  # noqa: ANN001
 
 def _fig04(plt, result, local, rec, path: Path) -> Path:  # noqa: ANN001
     pts = _slice_points(result, local, rec)
-    _, walls, band = analyse_slice(pts, rec.station, config=result.config)
+    _, walls, band = analyse_slice(
+        pts, rec.station, slicing=result.slicing, settings=result.settings
+    )
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
     bp = pts[band]
     axes[0].scatter(bp[:, 0], bp[:, 1], s=2, c="0.3", lw=0)
@@ -150,7 +146,7 @@ def _fig15(plt, result, xyz, path: Path) -> Path:  # noqa: ANN001
     right = result.to_world(np.stack([st, [r.right for r in ok], mid], axis=1))
     fig, ax = plt.subplots(figsize=(12, 5))
     _plan_background(ax, result, xyz)
-    c = result.config.centerline
+    c = result.settings
     for pts, colour, name in ((left, "red", "left"), (right, "green", "right")):
         ax.scatter(*_plan(result, pts), s=10, c=colour, label=f"{name} wall lines (slices)")
         if len(pts) > c.degree:
@@ -227,7 +223,7 @@ def plot_centerline_diagnostics(
     list of Path
         The files written (Fig. 3, 4, 12, 15, 16 analogues; 3, 4 and 12 need an accepted slice).
     """
-    plt = _pyplot()
+    plt = figures()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -239,7 +235,7 @@ def plot_centerline_diagnostics(
         written.append(_fig03(plt, result, local, mid, out / "centerline_fig03_roof_floor.png"))
         written.append(_fig04(plt, result, local, mid, out / "centerline_fig04_walls.png"))
         written.append(_fig12(plt, result, local, picks, out / "centerline_fig12_slices.png"))
-    if len(result.accepted) > result.config.centerline.degree:
+    if len(result.accepted) > result.settings.degree:
         written.append(_fig15(plt, result, xyz, out / "centerline_fig15_wall_lines.png"))
         written.append(_fig16(plt, result, xyz, out / "centerline_fig16_fit_comparison.png"))
     return written

@@ -14,18 +14,10 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import binned_statistic_2d
 
-from ..centerline.curve import Centerline
+from ..curve import Centerline
+from ._figures import figures
 
 __all__ = ["unrolled_angle", "plot_deformation_map", "plot_danger_map", "plot_cross_section"]
-
-
-def _pyplot():  # noqa: ANN202
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def unrolled_angle(lateral: np.ndarray, vertical: np.ndarray) -> np.ndarray:
@@ -66,7 +58,7 @@ def plot_deformation_map(
     limit : float, optional
         Colour saturation, metres (default: the 99th percentile of |deformation|).
     """
-    plt = _pyplot()
+    plt = figures()
     s, a = _unrolled(xyz, centerline)
     keep = np.isfinite(deformation) & (np.ones(len(s), bool) if shell is None else shell)
     sb, ab = _bins(s[keep])
@@ -87,7 +79,7 @@ def plot_danger_map(
     shell: np.ndarray | None = None, threshold: float | None = None,
 ) -> Path:
     """Unrolled map: cells holding points over the danger threshold red, the rest green."""
-    plt = _pyplot()
+    plt = figures()
     from matplotlib.colors import ListedColormap
 
     s, a = _unrolled(xyz, centerline)
@@ -112,7 +104,7 @@ def plot_cross_section(
     limit: float | None = None,
 ) -> Path:
     """Both epochs' points within ``thickness`` of one chainage, in the section plane."""
-    plt = _pyplot()
+    plt = figures()
     pr_r, pr_c = centerline.project(ref_xyz), centerline.project(cmp_xyz)
     mr = np.abs(pr_r.chainage - chainage) <= thickness / 2
     mc = np.abs(pr_c.chainage - chainage) <= thickness / 2

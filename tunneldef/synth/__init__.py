@@ -15,7 +15,7 @@ truth (coordinates in the reference frame, signed normal displacement, chainage,
 Coordinates of a section are ``(u, v)``: ``u`` lateral, positive to the LEFT of increasing
 chainage, ``v`` perpendicular to the axis, positive up; the design axis is the section centre
 (mid-width, mid-height between floor and roof/crown), as in
-:class:`tunneldef.centerline.curve.Centerline`. Deformation sign (the paper's, §3.3.2):
+:class:`tunneldef.curve.Centerline`. Deformation sign (the paper's, §3.3.2):
 negative = the shell moved into the tunnel.
 
 Notes
@@ -44,10 +44,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..centerline.curve import Centerline
 from ..cloud import Cloud
+from ..curve import Centerline
 from ..io import write as write_cloud
-from ..progress import ProgressCallback, report, timed_stage
+from ..progress import ProgressCallback, notify, timed_stage
+from ..transforms import apply_transform
 from .design import (
     LABEL_DYNAMIC,
     LABEL_EQUIPMENT,
@@ -226,10 +227,10 @@ def make_tunnel(
     g_scene, g_ref, _, _, _ = _streams(seed)
     scene = _make_scene(tunnel, g_scene)
     heaps = _draw_heaps(g_scene, 0.0, tunnel.length) if tunnel.conveyor else None
-    report(progress, "synthetic epoch", 0.0)
+    notify(progress, "synthetic epoch", 0.0)
     with timed_stage(log, "synthetic epoch"):
         ep = _sample_epoch(scene, 0.0, tunnel.length, g_ref, deformations, heaps)
-    report(progress, "synthetic epoch", 1.0)
+    notify(progress, "synthetic epoch", 1.0)
     cloud = Cloud(
         ep["xyz"],
         {"intensity": ep["intensity"]},
@@ -249,11 +250,6 @@ def make_tunnel(
     return cloud, truth
 
 
-def _apply(transform: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """``xyz`` (N, 3) mapped by a 4 x 4 rigid transform (einsum: no BLAS threads)."""
-    out = np.einsum("ij,kj->ik", xyz, transform[:3, :3])
-    out += transform[:3, 3]
-    return out
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -302,13 +298,13 @@ def make_pair(
     if tunnel.conveyor:
         heaps_ref = _draw_heaps(g_scene, *ref_range)
         heaps_cmp = _draw_heaps(g_coal, *cmp_range) if spec.coal_change else heaps_ref
-    report(progress, "synthetic pair", 0.0)
+    notify(progress, "synthetic pair", 0.0)
     with timed_stage(log, "synthetic reference epoch"):
         ref = _sample_epoch(scene, *ref_range, g_ref, (), heaps_ref)
-    report(progress, "synthetic pair", 0.5)
+    notify(progress, "synthetic pair", 0.5)
     with timed_stage(log, "synthetic compared epoch"):
         cmp = _sample_epoch(scene, *cmp_range, g_cmp, spec.deformations, heaps_cmp)
-    report(progress, "synthetic pair", 0.95)
+    notify(progress, "synthetic pair", 0.95)
 
     yaw = g_motion.uniform(0.0, 360.0) if spec.yaw_deg is None else float(spec.yaw_deg)
     phi = g_motion.uniform(0.0, 2 * np.pi)
@@ -324,9 +320,9 @@ def make_pair(
     transform[:3, 3] = -rot.T @ motion[:3, 3]
 
     local = cmp.pop("xyz")
-    cmp_xyz = _apply(motion, local)
+    cmp_xyz = apply_transform(motion, local, blas=False)
     del local
-    in_ref = _apply(transform, cmp_xyz)
+    in_ref = apply_transform(transform, cmp_xyz, blas=False)
 
     ref_cloud = Cloud(
         ref["xyz"],
@@ -360,7 +356,7 @@ def make_pair(
         tilt_axis=tilt_axis,
     )
     log.debug("synthetic pair: %d reference, %d compared points", len(ref_cloud), len(cmp_cloud))
-    report(progress, "synthetic pair", 1.0)
+    notify(progress, "synthetic pair", 1.0)
     return SynthPair(ref_cloud, cmp_cloud, truth, spec)
 
 

@@ -7,10 +7,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..config import check_positive
 from ..errors import ConfigError
+from ..surfaces import FLOOR, LEFT_WALL, NO_SURFACE, RIGHT_WALL, ROOF
 
 LABEL_SHELL, LABEL_EQUIPMENT, LABEL_DYNAMIC, LABEL_OUTLIER = 0, 1, 2, 3
-SURFACE_ROOF, SURFACE_LEFT, SURFACE_RIGHT, SURFACE_FLOOR, SURFACE_NONE = 0, 1, 2, 3, 255
+SURFACE_ROOF, SURFACE_LEFT, SURFACE_RIGHT, SURFACE_FLOOR, SURFACE_NONE = (
+    ROOF, LEFT_WALL, RIGHT_WALL, FLOOR, NO_SURFACE
+)
 
 _SECTION_KINDS = ("rectangle", "arch", "trapezoid")
 _DEFORMATION_KINDS = ("roof_sag", "wall_bulge", "floor_heave")
@@ -19,15 +23,6 @@ _SIDES = ("left", "right")
 # component codes (internal; they set the intensity model)
 _C_SHELL, _C_PIPE, _C_CABLE, _C_BELT, _C_FRAME, _C_COAL = range(6)
 _C_OUTLIER, _C_PERSON, _C_CHAMBER = range(6, 9)
-
-
-def _positive(name: str, value: float, unit: str = "m") -> None:
-    try:
-        ok = bool(np.isfinite(value) and value > 0)
-    except TypeError:
-        ok = False
-    if not ok:
-        raise ConfigError(f"{name} must be a positive number ({unit}), got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -61,16 +56,16 @@ class SectionSpec:
             raise ConfigError(
                 f"unknown section kind {self.kind!r}; use one of {', '.join(_SECTION_KINDS)}"
             )
-        _positive("section width", self.width)
-        _positive("section height", self.height)
+        check_positive("section width", self.width)
+        check_positive("section height", self.height)
         if self.arch_rise is not None:
-            _positive("arch_rise", self.arch_rise)
+            check_positive("arch_rise", self.arch_rise)
             if self.arch_rise > self.width / 2 or self.arch_rise >= self.height:
                 raise ConfigError(
                     f"arch_rise {self.arch_rise} m must be at most width/2 and below the height"
                 )
         if self.top_width is not None:
-            _positive("top_width", self.top_width)
+            check_positive("top_width", self.top_width)
             if self.top_width > self.width:
                 raise ConfigError(
                     f"top_width {self.top_width} m exceeds the floor width {self.width} m"
@@ -155,8 +150,8 @@ class TunnelSpec:
     def __post_init__(self) -> None:
         if not isinstance(self.section, SectionSpec):
             raise ConfigError("section must be a SectionSpec")
-        _positive("tunnel length", self.length)
-        _positive("density", self.density, "points per m^2")
+        check_positive("tunnel length", self.length)
+        check_positive("density", self.density, unit="points per m^2")
         if self.radius is not None:
             if not np.isfinite(self.radius) or abs(self.radius) < 2 * self.section.width:
                 raise ConfigError(
@@ -178,8 +173,8 @@ class TunnelSpec:
         for name in ("chamber_side", "conveyor_side"):
             if getattr(self, name) not in _SIDES:
                 raise ConfigError(f"{name} must be 'left' or 'right', got {getattr(self, name)!r}")
-        _positive("chamber_depth", self.chamber_depth)
-        _positive("chamber_length", self.chamber_length)
+        check_positive("chamber_depth", self.chamber_depth)
+        check_positive("chamber_length", self.chamber_length)
         if not np.isfinite(self.roughness) or not 0 <= self.roughness < 0.25:
             raise ConfigError(f"roughness must be in [0, 0.25) m, got {self.roughness!r}")
         if int(self.people) != self.people or self.people < 0:
@@ -222,8 +217,8 @@ class DeformationSpec:
             )
         if self.side not in _SIDES:
             raise ConfigError(f"deformation side must be 'left' or 'right', got {self.side!r}")
-        _positive("deformation length", self.length)
-        _positive("deformation width", self.width)
+        check_positive("deformation length", self.length)
+        check_positive("deformation width", self.width)
         if not np.isfinite(self.chainage) or not np.isfinite(self.amplitude):
             raise ConfigError("deformation chainage and amplitude must be finite numbers")
 
@@ -276,7 +271,7 @@ class PairSpec:
         if not np.isfinite(self.cmp_shift):
             raise ConfigError(f"cmp_shift must be finite, got {self.cmp_shift!r}")
         if self.cmp_length is not None:
-            _positive("cmp_length", self.cmp_length)
+            check_positive("cmp_length", self.cmp_length)
         if np.shape(self.translation) != (3,):
             raise ConfigError(f"translation must be 3 numbers, got {self.translation!r}")
         _check_deformations(self.tunnel, self.deformations)

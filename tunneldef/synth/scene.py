@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..centerline.curve import Centerline
+from ..curve import Centerline
 from .design import (
     _C_CABLE,
     _C_PIPE,

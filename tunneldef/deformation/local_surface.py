@@ -55,7 +55,7 @@ Everything is vectorised: cylinder neighbourhoods come from Open3D's fixed-radiu
 (``open3d.core.nns``, multi-threaded) on spatially sorted copies of the clouds as one flat
 index array per chunk of cores, and every per-core statistic is a ``np.bincount`` over that
 flat array. Steps 1-3 live in :mod:`.cylinders`, steps 4-5 and the interpolation in
-:mod:`.corefield`; this module chains them.
+:mod:`.core_pooling`; this module chains them.
 
 References
 ----------
@@ -73,11 +73,12 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..centerline.curve import Centerline
 from ..cloud import check_points
+from ..config import check_positive
+from ..curve import Centerline
 from ..errors import ConfigError, InvalidCloudError
-from ..progress import ProgressCallback, report
-from .corefield import (
+from ..progress import ProgressCallback, notify
+from .core_pooling import (
     _MAX_VARIATION,
     _POOL_SCALE,
     _SHARPEN_GAIN,
@@ -174,15 +175,6 @@ def _outward(centerline: Centerline, xyz: np.ndarray, workers: int) -> np.ndarra
     return out / np.maximum(norm, 1e-12)
 
 
-def _check_positive(name: str, value: float, *, allow_zero: bool = False) -> float:
-    value = float(value)
-    ok = value >= 0.0 if allow_zero else value > 0.0
-    if not np.isfinite(value) or not ok:
-        sign = "non-negative" if allow_zero else "positive"
-        raise ConfigError(f"{name} must be a {sign} number of metres, got {value!r}")
-    return value
-
-
 def robust_deformation(
     ref_xyz: np.ndarray,
     cmp_xyz: np.ndarray,
@@ -260,11 +252,11 @@ def robust_deformation(
     """
     ref = check_points(ref_xyz, name="reference cloud", min_points=3)
     cmp_ = check_points(cmp_xyz, name="compared cloud")
-    normal_radius = _check_positive("normal_radius", normal_radius)
-    cylinder_radius = _check_positive("cylinder_radius", cylinder_radius)
-    max_depth = _check_positive("max_depth", max_depth)
-    core_spacing = _check_positive("core_spacing", core_spacing)
-    registration_sigma = _check_positive("registration_sigma", registration_sigma, allow_zero=True)
+    normal_radius = check_positive("normal_radius", normal_radius)
+    cylinder_radius = check_positive("cylinder_radius", cylinder_radius)
+    max_depth = check_positive("max_depth", max_depth)
+    core_spacing = check_positive("core_spacing", core_spacing)
+    registration_sigma = check_positive("registration_sigma", registration_sigma, allow_zero=True)
     if int(min_points) < 1:
         raise ConfigError(f"min_points must be at least 1, got {min_points!r}")
     ref_use = ref if ref_mask is None else ref[_check_mask(ref_mask, len(ref), "ref_mask")]
@@ -278,7 +270,7 @@ def robust_deformation(
     line = centerline.transformed(shift)
     cores, inverse = voxel_cores(cmp_ - origin, core_spacing)
     n_cores = len(cores)
-    report(progress, "robust deformation", 0.0)
+    notify(progress, "robust deformation", 0.0)
     # spatially sorted copies make the neighbour gathers cache-friendly
     ref_use = ref_use - origin
     ref_use = ref_use[_voxel_order(ref_use, core_spacing)]
@@ -292,7 +284,7 @@ def robust_deformation(
     flat = ~np.isfinite(variation)
     normal[flat] = radial[flat]
     normal[np.einsum("ij,ij->i", normal, radial) < 0] *= -1.0
-    report(progress, "robust deformation", 0.2)
+    notify(progress, "robust deformation", 0.2)
     # every point carries the normal of its nearest core: cylinders keep only the points of
     # the same surface (a wall cylinder near a corner drops the roof's points)
     _, near = cKDTree(cores).query(ref_use, workers=workers)
@@ -328,7 +320,7 @@ def robust_deformation(
                 depth_used[np.arange(sl.start, sl.stop)[deep]] = max_depth
         for key, s_ in zip(out, stats, strict=True):
             out[key][sl] = s_
-        report(progress, "robust deformation", 0.2 + 0.5 * sl.stop / n_cores)
+        notify(progress, "robust deformation", 0.2 + 0.5 * sl.stop / n_cores)
 
     # pass 3, adaptive scale: cores with too few points of an epoch (but some of each: a core
     # without any is off the surface, or its surface has no counterpart) or a cylinder much
@@ -360,7 +352,7 @@ def robust_deformation(
         for key, w in zip(out, stats, strict=True):
             out[key][ids] = w
         radius_used[ids] = rw
-        report(
+        notify(
             progress,
             "robust deformation",
             0.7 + 0.25 * min(start + _CHUNK, len(wide_ids)) / len(wide_ids),

@@ -15,8 +15,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..cloud import check_points
-from ..errors import NotATunnelError
+from .cloud import check_points
+from .errors import NotATunnelError
+from .transforms import apply_transform
 
 __all__ = ["Centerline", "Projection"]
 
@@ -220,6 +221,7 @@ class Centerline:
 
     def transformed(self, transform: np.ndarray) -> Centerline:
         """The same curve mapped by a 4 x 4 rigid transform."""
-        m = np.asarray(transform, dtype=np.float64)
-        f = lambda a: a @ m[:3, :3].T + m[:3, 3] if len(a) else a  # noqa: E731
+        def f(a: np.ndarray) -> np.ndarray:
+            return apply_transform(transform, a) if len(a) else a
+
         return Centerline(f(self.points), self.chainage.copy(), f(self.centres), dict(self.meta))

@@ -31,13 +31,14 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from ..centerline.curve import Centerline
+from ..curve import Centerline
 from ..errors import RegistrationError
+from ..transforms import apply_transform
 from .axial import AxialShift, coarse_shift, fine_shift
 
 __all__ = [
-    "FineResult",
-    "fine_align",
+    "ViewsResult",
+    "align_views",
     "floor_plane",
     "rotation_between",
     "normals",
@@ -75,10 +76,6 @@ def _translation(t: np.ndarray) -> np.ndarray:
     m = np.eye(4)
     m[:3, 3] = t
     return m
-
-
-def _apply(m: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    return xyz @ m[:3, :3].T + m[:3, 3]
 
 
 def floor_plane(
@@ -258,7 +255,7 @@ def _kabsch_2d(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 @dataclass
-class FineResult:
+class ViewsResult:
     """The stages after the coarse alignment, in the reference's principal frame."""
 
     transform: np.ndarray
@@ -269,7 +266,7 @@ class FineResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def fine_align(
+def align_views(
     ref_xyz: np.ndarray,
     cmp_xyz: np.ndarray,
     ref_cl: Centerline,
@@ -281,7 +278,7 @@ def fine_align(
     ref_normals: np.ndarray | None = None,
     common: tuple[float, float] | None = None,
     plan_iterations: int = 2,
-) -> FineResult:
+) -> ViewsResult:
     """Stages 2-4 of the centreline registration (paper §3.2.2-3.2.4).
 
     Parameters
@@ -306,10 +303,10 @@ def fine_align(
 
     Returns
     -------
-    FineResult
+    ViewsResult
         ``transform`` (4, 4) maps the coarse compared points onto the reference.
     """
-    out = FineResult(np.eye(4))
+    out = ViewsResult(np.eye(4))
     total = np.eye(4)
 
     # --- cross-section (§3.2.2)
@@ -326,7 +323,7 @@ def fine_align(
         )
     lo, hi = cmp_xyz.min(axis=0), cmp_xyz.max(axis=0)
     m = _about(rotation_between(n_cmp, n_ref), (lo + hi) / 2)
-    p0 = _apply(m, (-d_cmp * n_cmp)[None])[0]
+    p0 = apply_transform(m, (-d_cmp * n_cmp)[None])[0]
     m = _translation(-(n_ref @ p0 + d_ref) * n_ref) @ m
     total = m @ total
     out.stages["cross_section"] = total.copy()
@@ -378,7 +375,7 @@ def fine_align(
         m[:2, 3] = t
         return m @ total
 
-    moved = _apply(total, cmp_xyz)
+    moved = apply_transform(total, cmp_xyz)
     p = ref_cl.project(moved)
     coarse, spread = coarse_shift(
         ref_proj, (p.chainage, p.lateral, p.vertical), ref_cl, search=axial_search
@@ -390,7 +387,7 @@ def fine_align(
     tree = cKDTree(ref_xyz)
     shift = None
     for _ in range(plan_iterations):
-        moved = _apply(total, cmp_xyz)
+        moved = apply_transform(total, cmp_xyz)
         pm = ref_cl.project(moved)
         tan = ref_cl.frame_at(pm.chainage)[0]
         sel = _axial_sample(pm.chainage, ref_cl.length, common)
@@ -412,7 +409,7 @@ def fine_align(
     if ambiguous and shift is not None and shift.informative and shift.strongest_block is not None:
         # on a long overlap one feature (a chamber in 350 m) is lost in the whole tunnel's
         # clutter; judge the match again on the stretch around the feature the fine stage used
-        moved = _apply(total, cmp_xyz)
+        moved = apply_transform(total, cmp_xyz)
         local_shift, local_spread = _feature_window_shift(
             ref_proj, moved, ref_cl, float(shift.strongest_block) + 0.5, axial_search
         )

@@ -1,4 +1,4 @@
-"""Text outputs (JSON summaries, CSV tables), each written atomically."""
+"""Text outputs (JSON summaries, CSV tables), each written atomically; JSON clean-up."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["write_text_atomic", "to_json", "write_json", "write_csv"]
+__all__ = ["write_text_atomic", "jsonable", "to_json", "write_json", "write_csv"]
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
@@ -41,14 +41,15 @@ def _default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
-def _finite(obj: Any) -> Any:
-    """Replace NaN/inf floats (not valid JSON) by None, recursively."""
+def jsonable(obj: Any) -> Any:
+    """Plain JSON values, recursively: numpy arrays and scalars become lists and numbers,
+    tuples lists, NaN and infinities None (not valid JSON)."""
     if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
+        return {k: jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, (float, np.floating)):
         return float(obj) if np.isfinite(obj) else None
     if isinstance(obj, np.generic):
@@ -59,7 +60,7 @@ def _finite(obj: Any) -> Any:
 def to_json(obj: Any) -> str:
     """Indented, strictly valid JSON text: numpy arrays and scalars become lists and numbers,
     NaN and infinities become null."""
-    return json.dumps(_finite(obj), indent=2, default=_default, allow_nan=False) + "\n"
+    return json.dumps(jsonable(obj), indent=2, default=_default, allow_nan=False) + "\n"
 
 
 def write_json(path: str | Path, obj: Any) -> Path:

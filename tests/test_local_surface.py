@@ -1,4 +1,4 @@
-"""Robust signed deformation (tunneldef.deformation.robust) against synthetic truth."""
+"""Robust signed deformation (tunneldef.deformation.local_surface) against synthetic truth."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtri
 
 from tunneldef.deformation.cylinders import _INNER_TRIM
-from tunneldef.deformation.robust import (
+from tunneldef.deformation.local_surface import (
     RobustDeformation,
     robust_deformation,
     voxel_cores,
@@ -285,7 +285,7 @@ def test_pooling_cancels_its_own_smoothing_bias_and_lowers_the_noise():
     # cores on a flat roof every 0.2 m carrying a 30 mm, 4 m x 2 m cosine sag (the synthetic
     # sag's shape), each with a plain cylinder's bias-free value: the pooled field must read
     # the peak within 4 % where a single Gaussian mean of the same width reads it 9 % low
-    from tunneldef.deformation.corefield import _pool
+    from tunneldef.deformation.core_pooling import _pool
 
     g = np.arange(-4.0, 4.0 + 1e-9, 0.2)
     x, y = np.meshgrid(g, g, indexing="ij")

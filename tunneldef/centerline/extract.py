@@ -1,0 +1,487 @@
+"""Tunnel centreline from a point cloud (paper §3.1).
+
+Steps of :func:`extract_centerline`:
+
+1. PCA tunnel frame (:func:`tunneldef.frame.principal_frame`, paper §3.1.1). If the floor and
+   roof share a cross-slope (an unlevelled scanner, a rigidly tilted epoch) the section's roll is
+   removed first, so floor and roof are level in every slice.
+2. Slices along the frame's x (:mod:`.slicing`).
+3. Per slice: floor and roof from the first and last significant peaks of the height density
+   (:mod:`.roof_floor`, paper §3.1.2), walls from the top view of the wall band: linear-kernel
+   density, Canny, Hough, first and last lines (:mod:`.walls`, paper §3.1.3). The slice centre
+   is the midpoint of floor/roof and of the two walls.
+4. Slices that failed (too few points, no peak, a wall missing, width or height jumping against
+   their neighbours: chambers, niches, blind cones) are rejected with a reason.
+5. A least-squares cubic NURBS through the accepted centres (:mod:`.fit`, paper §3.1.4).
+6. Curved tunnels: the paper slices along one global x, which cuts a bend obliquely. The cloud
+   is therefore re-sliced normal to the fitted curve (chainage, lateral, vertical from
+   :meth:`Centerline.project`) and refitted until the curve moves less than
+   ``converge_tol`` or ``max_iterations`` passes are done.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..cloud import check_points
+from ..config import CenterlineConfig, SlicingConfig
+from ..curve import Centerline, Projection
+from ..errors import NotATunnelError
+from ..frame import TunnelFrame, principal_frame
+from ..progress import ProgressCallback, notify
+from .fit import fit_centerline
+from .roof_floor import RoofFloor, estimate_roll, roof_floor_lines
+from .slicing import slice_along_axis
+from .walls import WallLines, estimate_wall_leans, wall_lines
+
+__all__ = [
+    "Centerline",
+    "Projection",
+    "SliceRecord",
+    "CenterlineResult",
+    "extract_centerline",
+    "analyse_slice",
+]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class SliceRecord:
+    """What one slice gave (lengths in metres).
+
+    Attributes
+    ----------
+    station : float
+        Along-axis position of the slice in the pass that produced it (PCA x or the previous
+        curve's chainage).
+    chainage : float
+        Chainage of the slice centre on the final centreline (NaN if the slice has no centre).
+    centre : ndarray, shape (3,)
+        World coordinates of the slice centre (NaN if rejected).
+    width, height : float
+        Wall-to-wall and floor-to-roof distances.
+    floor, roof : float
+        Vertical offsets of the floor and roof lines from the slicing axis.
+    left, right : float
+        Lateral offsets of the left (+) and right (-) wall lines from the slicing axis.
+    methods : dict
+        How each line was found: ``{"floor": "kde_peak", "roof": ..., "left": "hough" |
+        "fallback", "right": ...}`` ("" where it was not).
+    ok : bool
+        True if the centre was used for the centreline.
+    reason : str
+        Why the slice was rejected ("" if ok).
+    n_points : int
+        Points in the slice.
+    weight : float
+        Robust weight of the centre in the NURBS fit (NaN if not used).
+    """
+
+    station: float
+    chainage: float = np.nan
+    centre: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    width: float = np.nan
+    height: float = np.nan
+    floor: float = np.nan
+    roof: float = np.nan
+    left: float = np.nan
+    right: float = np.nan
+    methods: dict[str, str] = field(default_factory=dict)
+    ok: bool = False
+    reason: str = ""
+    n_points: int = 0
+    weight: float = np.nan
+
+    def row(self) -> dict[str, Any]:
+        """Flat dict for a CSV row."""
+        return {
+            "chainage": self.chainage,
+            "station": self.station,
+            "x": float(self.centre[0]),
+            "y": float(self.centre[1]),
+            "z": float(self.centre[2]),
+            "width": self.width,
+            "height": self.height,
+            "floor": self.floor,
+            "roof": self.roof,
+            "left": self.left,
+            "right": self.right,
+            "floor_method": self.methods.get("floor", ""),
+            "roof_method": self.methods.get("roof", ""),
+            "left_method": self.methods.get("left", ""),
+            "right_method": self.methods.get("right", ""),
+            "ok": self.ok,
+            "reason": self.reason,
+            "n_points": self.n_points,
+            "weight": self.weight,
+        }
+
+
+@dataclass
+class CenterlineResult:
+    """Output of :func:`extract_centerline`.
+
+    Attributes
+    ----------
+    centerline : Centerline
+        The fitted centreline (world coordinates).
+    slices : list of SliceRecord
+        The slices of the last pass, in order of chainage.
+    frame : TunnelFrame
+        The PCA frame of the cloud.
+    passes : int
+        Slicing passes run (1 = the paper's single pass along the PCA axis).
+    axis : Centerline or None
+        The curve the last pass was sliced along (None when it was the PCA axis).
+    slicing : SlicingConfig
+        The slicing parameters used.
+    settings : CenterlineConfig
+        The line and curve parameters used.
+    roll : float
+        Roll of the section about the axis (radians, positive = the floor rises to the left),
+        estimated from the floor and roof cross-slopes and removed before the lines are found;
+        0 for a levelled scan.
+    leans : (float, float)
+        Lean dv/dz of the left and right walls (0 = vertical), measured once per cloud; leaning
+        walls are measured at the middle of the wall band.
+    """
+
+    centerline: Centerline
+    slices: list[SliceRecord]
+    frame: TunnelFrame
+    passes: int = 1
+    axis: Centerline | None = None
+    slicing: SlicingConfig = field(default_factory=SlicingConfig)
+    settings: CenterlineConfig = field(default_factory=CenterlineConfig)
+    roll: float = 0.0
+    leans: tuple[float, float] = (0.0, 0.0)
+
+    def table(self) -> list[dict[str, Any]]:
+        """One dict per slice (see :meth:`SliceRecord.row`), for CSV."""
+        return [r.row() for r in self.slices]
+
+    @property
+    def accepted(self) -> list[SliceRecord]:
+        return [r for r in self.slices if r.ok]
+
+    def to_world(self, local: np.ndarray) -> np.ndarray:
+        """World (N, 3) coordinates of (along, lateral, vertical) in the last pass's axes."""
+        return _local_to_world(np.atleast_2d(local), self.axis, self.frame, self.roll)
+
+    def slice_coordinates(self, xyz: np.ndarray) -> np.ndarray:
+        """(N, 3) along / lateral / vertical coordinates of points in the last pass's axes."""
+        return _axis_coordinates(xyz, self.axis, self.frame, self.roll)
+
+
+def _roll(local: np.ndarray, angle: float) -> np.ndarray:
+    """Rotate (lateral, vertical) by ``-angle`` in place (levels a section rolled by ``angle``)."""
+    if angle:
+        c, s = np.cos(angle), np.sin(angle)
+        v, w = local[:, 1].copy(), local[:, 2].copy()
+        local[:, 1] = c * v + s * w
+        local[:, 2] = -s * v + c * w
+    return local
+
+
+def _axis_coordinates(
+    xyz: np.ndarray, axis: Centerline | None, frame: TunnelFrame, roll: float = 0.0
+) -> np.ndarray:
+    if axis is None:
+        return _roll(frame.to_local(xyz), roll)
+    p = axis.project(xyz)
+    return _roll(np.stack([p.chainage, p.lateral, p.vertical], axis=1), roll)
+
+
+def _local_to_world(
+    local: np.ndarray, axis: Centerline | None, frame: TunnelFrame, roll: float = 0.0
+) -> np.ndarray:
+    local = _roll(np.array(local, dtype=np.float64), -roll)
+    if axis is None:
+        return frame.to_world(local)
+    return _curve_to_world(axis)(local)
+
+
+def analyse_slice(
+    local: np.ndarray,
+    station: float,
+    *,
+    slicing: SlicingConfig | None = None,
+    settings: CenterlineConfig | None = None,
+    leans: tuple[float, float] = (0.0, 0.0),
+) -> tuple[RoofFloor, WallLines | None, np.ndarray]:
+    """Roof, floor and wall lines of one slice.
+
+    Parameters
+    ----------
+    local : ndarray, shape (N, 3)
+        The slice's points as (along, lateral, vertical), metres.
+    station : float
+        Along-axis position of the slice, metres.
+    slicing, settings : SlicingConfig, CenterlineConfig, optional
+        The ``[slicing]`` and ``[centerline]`` parameters.
+    leans : (float, float)
+        Lean of the left and right wall (dv/dw, 0 = vertical), see
+        :func:`~tunneldef.centerline.walls.estimate_wall_leans`.
+
+    Returns
+    -------
+    roof_floor : RoofFloor
+    walls : WallLines or None
+        None when the floor or roof is missing (the wall band is then unknown).
+    band : ndarray of bool, shape (N,)
+        The points of the wall band.
+    """
+    sl = slicing or SlicingConfig()
+    c = settings or CenterlineConfig()
+    rf = roof_floor_lines(
+        local[:, 2],
+        bandwidth=c.kde_bandwidth,
+        min_share=c.min_peak_share,
+        refine_bandwidth=c.refine_bandwidth,
+    )
+    if not rf.ok:
+        return rf, None, np.zeros(len(local), dtype=bool)
+    h = rf.roof - rf.floor
+    band = (local[:, 2] > rf.floor + c.wall_band_low * h) & (
+        local[:, 2] < rf.floor + c.wall_band_high * h
+    )
+    walls = wall_lines(
+        local[band, 0],
+        local[band, 1],
+        station=station,
+        thickness=sl.thickness,
+        grid_cell=c.grid_cell,
+        kernel_half_width=c.wall_kernel,
+        max_angle_deg=c.max_wall_angle_deg,
+        peak_ratio=c.hough_peak_ratio,
+        refine_bandwidth=c.refine_bandwidth,
+        w=local[band, 2],
+        w_ref=rf.floor + 0.5 * (c.wall_band_low + c.wall_band_high) * h,
+        leans=leans,
+    )
+    return rf, walls, band
+
+
+def _slice_pass(
+    local: np.ndarray,
+    slicing: SlicingConfig,
+    settings: CenterlineConfig,
+    progress: ProgressCallback | None,
+    stage: str,
+    leans: tuple[float, float] = (0.0, 0.0),
+) -> list[SliceRecord]:
+    slices = slice_along_axis(local[:, 0], step=slicing.step, thickness=slicing.thickness)
+    records = []
+    for i, sl in enumerate(slices):
+        rec = SliceRecord(station=sl.station, n_points=len(sl.index))
+        records.append(rec)
+        notify(progress, stage, i / max(len(slices), 1))
+        if rec.n_points < slicing.min_points:
+            rec.reason = f"too few points ({rec.n_points} < {slicing.min_points})"
+            continue
+        rf, walls, _ = analyse_slice(
+            local[sl.index], sl.station, slicing=slicing, settings=settings, leans=leans
+        )
+        rec.floor, rec.roof = rf.floor, rf.roof
+        rec.methods = {"floor": rf.method, "roof": rf.method, "left": "", "right": ""}
+        if walls is None:
+            rec.reason = rf.reason
+            continue
+        rec.left, rec.right = walls.left, walls.right
+        rec.methods["left"] = rec.methods["right"] = walls.method
+        if not walls.ok:
+            rec.reason = walls.reason
+            continue
+        rec.width, rec.height = rec.left - rec.right, rec.roof - rec.floor
+        rec.ok = True
+    notify(progress, stage, 1.0)
+    _reject_jumps(records, settings)
+    return records
+
+
+def _reject_jumps(records: list[SliceRecord], c: CenterlineConfig) -> None:
+    """Reject slices whose width or height jumps against their neighbours (within
+    ``neighbour_window``): width against the 30th percentile, height against the median."""
+    ok = [r for r in records if r.ok]
+    if len(ok) < 3:
+        return
+    st = np.array([r.station for r in ok])
+    wid = np.array([r.width for r in ok])
+    hei = np.array([r.height for r in ok])
+    for r in ok:
+        near = np.abs(st - r.station) <= c.neighbour_window
+        # chambers, niches and junctions only ever widen a tunnel: the reference width is a
+        # low quantile of the neighbours', right even where wide slices are the majority
+        mw = float(np.percentile(wid[near], 30))
+        mh = float(np.median(hei[near]))
+        if r.width - mw > c.max_width_jump:
+            r.ok, r.reason = False, f"chamber or niche: width {r.width:.2f} m vs {mw:.2f} m nearby"
+        elif mw - r.width > c.max_width_jump:
+            r.ok, r.reason = (
+                False,
+                f"inconsistent walls: width {r.width:.2f} m vs {mw:.2f} m nearby",
+            )
+        elif abs(r.height - mh) > c.max_height_jump:
+            r.ok, r.reason = (
+                False,
+                (f"inconsistent floor/roof: height {r.height:.2f} m vs {mh:.2f} m nearby"),
+            )
+
+
+def _centres(records: list[SliceRecord], to_world: Callable[[np.ndarray], np.ndarray]) -> None:
+    ok = [r for r in records if r.ok]
+    if not ok:
+        return
+    local = np.array([[r.station, (r.left + r.right) / 2, (r.floor + r.roof) / 2] for r in ok])
+    world = to_world(local)
+    for r, c in zip(ok, world, strict=True):
+        r.centre = c
+
+
+def _curve_to_world(axis: Centerline) -> Callable[[np.ndarray], np.ndarray]:
+    def f(local: np.ndarray) -> np.ndarray:
+        _, lat, ver = axis.frame_at(local[:, 0])
+        return axis.point_at(local[:, 0]) + local[:, 1:2] * lat + local[:, 2:3] * ver
+
+    return f
+
+
+def _fit(records: list[SliceRecord], c: CenterlineConfig, meta: dict) -> Centerline:
+    ok = [r for r in records if r.ok]
+    n_slices = len(records)
+    if len(ok) < max(c.min_slices, c.degree + 1):
+        reasons: dict[str, int] = {}
+        for r in records:
+            if not r.ok:
+                key = r.reason.split(":")[0].split(" (")[0]
+                reasons[key] = reasons.get(key, 0) + 1
+        common = ", ".join(f"{k} ({v})" for k, v in sorted(reasons.items(), key=lambda x: -x[1]))
+        raise NotATunnelError(
+            f"only {len(ok)} of {n_slices} slices show a floor, a roof and two walls "
+            f"(rejected: {common or 'none'}); is this a tunnel scan? check units (metres) and "
+            "the [slicing] thickness/step"
+        )
+    centres = np.array([r.centre for r in ok])
+    stations = np.array([r.station for r in ok])
+    cl, fit = fit_centerline(
+        centres,
+        params=stations,
+        degree=c.degree,
+        ctrl_spacing=c.ctrl_spacing,
+        sample_step=c.sample_step,
+        meta={**meta, "n_slices": n_slices, "n_used": len(ok)},
+    )
+    for r, w in zip(ok, fit.data_weights, strict=True):
+        r.weight = float(w)
+    return cl
+
+
+def _shift(new: Centerline, old: Centerline) -> float:
+    """How far a refitted curve moved: 95th percentile of its distance to the previous one
+    (the maximum would measure the slice noise at the free ends)."""
+    p = old.project(new.points)
+    d = p.distance[p.inside]
+    return float(np.percentile(d, 95)) if d.size else np.inf
+
+
+def extract_centerline(
+    xyz: np.ndarray,
+    *,
+    slicing: SlicingConfig | None = None,
+    settings: CenterlineConfig | None = None,
+    progress: ProgressCallback | None = None,
+) -> CenterlineResult:
+    """The centreline of a tunnel point cloud (paper §3.1).
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (N, 3)
+        World coordinates, metres (z up unless ``settings.vertical == "pca"``).
+    slicing : SlicingConfig, optional
+        The ``[slicing]`` parameters (slice step, thickness, least points).
+    settings : CenterlineConfig, optional
+        The ``[centerline]`` parameters (kernel densities, Hough, NURBS, passes).
+    progress : ProgressCallback, optional
+        Called with ("centreline pass k", fraction) per slice.
+
+    Returns
+    -------
+    CenterlineResult
+        The centreline, the per-slice records of the last pass and the PCA frame.
+
+    Raises
+    ------
+    NotATunnelError
+        If the cloud is not elongated, or too few slices show a floor, a roof and two walls.
+    InvalidCloudError
+        If ``xyz`` is not a finite N x 3 array.
+
+    References
+    ----------
+    Sensors 2024, 24, 2299, doi:10.3390/s24072299, §3.1.
+    """
+    sl = slicing or SlicingConfig()
+    c = settings or CenterlineConfig()
+    pts = check_points(xyz, min_points=1)
+    need = sl.min_points * c.min_slices
+    if len(pts) < need:
+        raise NotATunnelError(
+            f"the cloud has {len(pts)} points; a centreline needs at least {need} "
+            f"({c.min_slices} slices x {sl.min_points} points); is the file complete?"
+        )
+    if len(pts) > c.max_points > 0:
+        keep = np.random.default_rng(0).random(len(pts)) < c.max_points / len(pts)
+        logger.info("centreline: %d of %d points used", int(keep.sum()), len(pts))
+        pts = pts[keep]
+    frame = principal_frame(pts, vertical=c.vertical)
+    roll = estimate_roll(frame.to_local(pts), sl, c)
+    if roll:
+        logger.info("centreline: section rolled by %.2f deg about the axis", np.degrees(roll))
+    local = _axis_coordinates(pts, None, frame, roll)
+    leans = estimate_wall_leans(local, sl, c)
+    if any(leans):
+        logger.info("centreline: walls lean by %.3f / %.3f (dv/dz)", *leans)
+    records = _slice_pass(local, sl, c, progress, "centreline pass 1", leans)
+    _centres(records, lambda loc: _local_to_world(loc, None, frame, roll))
+    centerline = _fit(records, c, {"pass": 1, "axis": "pca"})
+    axis: Centerline | None = None
+    passes, shifts = 1, []
+    for it in range(c.max_iterations):
+        local = _axis_coordinates(pts, centerline, frame, roll)
+        new_records = _slice_pass(local, sl, c, progress, f"centreline pass {it + 2}", leans)
+        _centres(new_records, lambda loc, a=centerline: _local_to_world(loc, a, frame, roll))
+        try:
+            new = _fit(new_records, c, {"pass": it + 2, "axis": "curve"})
+        except NotATunnelError:
+            logger.warning("re-slicing along the curve failed; keeping pass %d", passes)
+            break
+        shift = _shift(new, centerline)
+        shifts.append(shift)
+        axis, records, centerline, passes = centerline, new_records, new, it + 2
+        logger.info("centreline pass %d: curve moved by %.4f m (p95)", passes, shift)
+        if shift < c.converge_tol:
+            break
+        if len(shifts) > 1 and shift > 0.7 * shifts[-2]:
+            # no longer converging: the centres' own noise (rough walls) moves the curve
+            logger.info("centreline: re-slicing stopped at the noise floor (%.3f m)", shift)
+            break
+    ok = [r for r in records if r.ok]
+    if ok:
+        s = centerline.project(np.array([r.centre for r in ok])).chainage
+        for r, si in zip(ok, s, strict=True):
+            r.chainage = float(si)
+    centerline.meta.update(
+        {
+            "passes": passes,
+            "shifts_m": shifts,
+            "roll_deg": float(np.degrees(roll)),
+            "wall_leans": list(leans),
+        }
+    )
+    return CenterlineResult(centerline, records, frame, passes, axis, sl, c, roll, leans)

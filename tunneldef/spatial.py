@@ -1,0 +1,71 @@
+"""Point orderings and subsets shared by the stages: a Morton order, a seeded random subset."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["morton_order", "random_subset"]
+
+_BITS = 21  # bits per axis of a 63-bit Morton code
+
+
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    """Insert two zero bits between each of the low 21 bits of ``x`` (uint64)."""
+    x = x & np.uint64(0x1FFFFF)
+    x = (x | (x << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    x = (x | (x << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    x = (x | (x << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    x = (x | (x << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    x = (x | (x << np.uint64(2))) & np.uint64(0x1249249249249249)
+    return x
+
+
+def morton_order(xyz: np.ndarray) -> np.ndarray:
+    """Permutation that sorts points along a Morton (Z-order) curve.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (N, 3)
+        Coordinates, metres.
+
+    Returns
+    -------
+    ndarray, shape (N,), intp
+        ``xyz[order]`` is spatially coherent: nearby points are mostly nearby in memory.
+
+    Notes
+    -----
+    The bounding box is quantised to 2**21 cells per axis with one cell size for all axes
+    (cubic cells), and the three cell indices are bit-interleaved into a 63-bit code.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.shape[0] == 0:
+        return np.empty(0, dtype=np.intp)
+    lo = xyz.min(axis=0)
+    extent = float((xyz.max(axis=0) - lo).max())
+    scale = ((1 << _BITS) - 1) / extent if extent > 0 else 0.0
+    q = ((xyz - lo) * scale).astype(np.uint64)
+    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1))
+    code |= _spread_bits(q[:, 2]) << np.uint64(2)
+    return np.argsort(code, kind="stable")
+
+
+def random_subset(xyz: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """At most ``n`` of the points, drawn without replacement (seeded); all if there are fewer.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (N, ...)
+    n : int
+        Largest number of rows returned.
+    seed : int
+        Seed of ``numpy.random.default_rng``: the same call gives the same subset.
+
+    Returns
+    -------
+    ndarray
+        ``xyz`` itself when ``N <= n``, else ``n`` of its rows in random order.
+    """
+    if len(xyz) <= n:
+        return xyz
+    return xyz[np.random.default_rng(seed).choice(len(xyz), n, replace=False)]
