@@ -287,12 +287,11 @@ def test_extract_centerline_action(pycc, plugin, monkeypatch, pair, capsys):
 def test_register_action_prints_matrix(pycc, plugin, monkeypatch, pair, capsys):
     from tunneldef_cloudcompare import adapter
 
-    def fake_register(
-        ref_xyz, cmp_xyz, *, method="centerline", config=None, progress=None, **kwargs
-    ):
-        return SimpleNamespace(transform=pair.transform, method=method, fitness=0.012)
+    def fake_register_epochs(ref, cmp, config=None, *, progress=None):
+        reg = SimpleNamespace(transform=pair.transform, method="centerline", fitness=0.012)
+        return SimpleNamespace(registration=reg)
 
-    _patch_core(monkeypatch, "tunneldef.registration", "register", fake_register)
+    _patch_core(monkeypatch, "tunneldef.pipeline", "register_epochs", fake_register_epochs)
     ref_e, cmp_e = _select(pycc, pair)
     before = np.asarray(cmp_e.points()).copy()
     copy = plugin.register_to_reference()

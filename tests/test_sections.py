@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import csv
 import math
-from functools import partial
 
 import numpy as np
 import pytest
 
+from tunneldef.config import DeformationConfig
 from tunneldef.deformation import DeformationResult
 from tunneldef.deformation import compute_deformation as _compute_deformation
 from tunneldef.deformation.sections import (
@@ -25,7 +25,12 @@ from tunneldef.errors import ConfigError, InvalidCloudError
 from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
 
 # these tests check the paper's method (§3.3): KNN centroid, unless a test says otherwise
-compute_deformation = partial(_compute_deformation, method="knn")
+KNN = DeformationConfig(method="knn")
+
+
+def compute_deformation(*args, **kwargs):
+    """The stage with the paper's KNN centroid (these tests check the paper's Table 4)."""
+    return _compute_deformation(*args, settings=KNN, **kwargs)
 
 
 def _rectangle(rng, n, *, width=5.8, height=2.86, length=10.0, centre=(0.0, 0.0)):
