@@ -111,6 +111,7 @@ def test_info_reports_axis_and_length(
     assert abs(length - 24.0) < 1.0  # 0.5-99.5 % extent of a 24 m tunnel
 
 
+@pytest.mark.slow
 def test_detect_end_to_end_output_contract(
     pair_files, capsys: pytest.CaptureFixture[str]  # noqa: ANN001
 ) -> None:

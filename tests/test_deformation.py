@@ -428,7 +428,6 @@ def test_points_beyond_the_reference_have_no_deformation():
     assert abs(rows[-1]["mean"]) < 0.01  # at the very end: half a section, still unbiased
 
 
-@pytest.mark.slow
 def test_real_drift_with_an_injected_roof_sag(drift_path):
     """The real drift scan split into two epochs (every 4th point each), the second with a
     30 mm roof sag (cos^2 patch 3 m x 1.2 m): one roof zone at the right place and depth."""
@@ -461,7 +460,6 @@ def test_real_drift_with_an_injected_roof_sag(drift_path):
     assert np.abs(d.deformation[still]).mean() < 0.006  # TLS noise: a few millimetres
 
 
-@pytest.mark.slow
 def test_real_drift_halves_unchanged_the_lod95_holds(drift_path):
     """Two random halves of one real scan (600,000 points): nothing moved, so at most about 5 %
     of the shell may exceed its LoD95 (4.9 % here). Cut each epoch against its own envelope

@@ -18,6 +18,8 @@ sys.path.insert(0, str(GOLDEN))
 
 from make_golden import fingerprint, pairs  # noqa: E402
 
+pytestmark = pytest.mark.slow
+
 EXPECTED = json.loads((GOLDEN / "golden.json").read_text(encoding="utf-8"))
 
 

@@ -609,7 +609,6 @@ def test_malformed_files_are_corrupt(tmp_path: Path, name: str, content: bytes) 
 # --------------------------------------------------------------------------- real scans
 
 
-@pytest.mark.slow
 def test_real_drift_reads(drift_path: Path) -> None:
     start = time.perf_counter()
     cloud = read(drift_path)
@@ -622,7 +621,6 @@ def test_real_drift_reads(drift_path: Path) -> None:
     assert elapsed < 30.0  # a few seconds on 2 cores; generous bound for a busy machine
 
 
-@pytest.mark.slow
 def test_real_chamber_reads_and_writes_back_exactly(chamber_path: Path, tmp_path: Path) -> None:
     cloud = read(chamber_path)
     assert len(cloud) == CHAMBER_POINTS

@@ -80,6 +80,7 @@ def _errors(reg, pair):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("radius", "yaw"), [(None, 37.0), (None, 211.0), (80.0, 37.0), (80.0, 211.0)]
 )
@@ -100,6 +101,7 @@ def test_centerline_registration_meets_targets(radius, yaw):
     assert 0.02 < reg.fitness < 0.07
 
 
+@pytest.mark.slow
 def test_registration_through_real_centreline_extraction():
     pair = _pair(radius=80.0, yaw=211.0, kind="arch", length=24.0)
     reg = register(pair.ref.xyz, pair.cmp.xyz, *_extracted(pair))
@@ -116,6 +118,7 @@ def test_registration_through_real_centreline_extraction():
     }
 
 
+@pytest.mark.slow
 def test_pca_direction_flip_resolved():
     # 180 degrees apart: the principal axis points the other way in one of the two; both
     # must come out right, each keeping a different sign candidate
@@ -141,6 +144,7 @@ def test_pca_direction_flip_resolved():
     assert chosen[0] != chosen[1]
 
 
+@pytest.mark.slow
 def test_each_stage_does_its_part():
     pair = _pair(seed=5, yaw=300.0, tilt_deg=3.0)
     ref_cl, cmp_cl = _truth_centerlines(pair)
@@ -167,6 +171,7 @@ def test_each_stage_does_its_part():
     assert abs(reg.info["floor_tilt_deg"] - 3.0) < 0.5
 
 
+@pytest.mark.slow
 def test_register_is_reproducible():
     # the same epochs give the same transform bit for bit, whatever the threads do (Open3D's
     # seeded RANSAC plane was not: 0.9-3.0 mm apart from run to run on one benchmark pair)
@@ -261,6 +266,7 @@ def test_one_chamber_in_350_m_is_judged_on_its_own_stretch(chamber):
         assert spread > 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [7, 12])
 def test_rough_rock_alone_fixes_the_axial_position(seed):
     # no chamber, only 3 cm rock relief along the axis, the compared stretch 1 m further on:
@@ -368,6 +374,7 @@ def test_fitness_and_to_dict():
         assert a["fitness"] == pytest.approx(b["fitness"], abs=0.01)
 
 
+@pytest.mark.slow
 def test_refinement_repairs_a_bad_centreline_and_stays_off_otherwise():
     pair = _pair(seed=10, yaw=150.0, length=24.0, density=80.0)
     ref_cl, cmp_cl = _truth_centerlines(pair)
