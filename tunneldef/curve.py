@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 
 from .cloud import check_points
 from .errors import NotATunnelError
+from .spatial import query_workers
 from .transforms import apply_transform
 
 __all__ = ["Centerline", "Projection"]
@@ -184,7 +185,7 @@ class Centerline:
         """
         p = np.asarray(xyz, dtype=np.float64)
         t, lat, ver = self._frames()
-        _, i = self._tree().query(p, workers=workers)
+        _, i = self._tree().query(p, workers=query_workers(len(p), workers))
         d = p - self.points[i]
         u = np.einsum("ij,ij->i", d, t[i])
         s = self.chainage[i] + u

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["morton_order", "random_subset"]
+__all__ = ["morton_order", "random_subset", "query_workers"]
+
+#: Below this many query points a KD-tree query runs on the calling thread: scipy starts a
+#: Python thread per worker and call, which costs more than a small query saves.
+THREADED_QUERY_MIN = 20_000
 
 _BITS = 21  # bits per axis of a 63-bit Morton code
 
@@ -69,3 +73,11 @@ def random_subset(xyz: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     if len(xyz) <= n:
         return xyz
     return xyz[np.random.default_rng(seed).choice(len(xyz), n, replace=False)]
+
+
+def query_workers(n: int, workers: int = -1) -> int:
+    """Threads for a KD-tree query of ``n`` points: ``workers``, or 1 for small queries.
+
+    The answer does not depend on the thread count; only the time does.
+    """
+    return workers if n >= THREADED_QUERY_MIN else 1

@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..curve import Centerline
+from ..spatial import query_workers
 
 __all__ = ["AxialShift", "coarse_shift", "fine_shift", "section_image"]
 
@@ -234,7 +235,9 @@ def fine_shift(
     for kernel in kernels:
         for _ in range(iterations):
             p = cmp_xyz + delta * tangents
-            d, j = tree.query(p, distance_upper_bound=1.5 * kernel, workers=-1)
+            d, j = tree.query(
+                p, distance_upper_bound=1.5 * kernel, workers=query_workers(len(p))
+            )
             ok = np.isfinite(d)
             if ok.sum() < 20:
                 return AxialShift(0.0, float("inf"), False, 0)

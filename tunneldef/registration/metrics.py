@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..curve import Centerline
+from ..spatial import query_workers
 from ..transforms import apply_transform
 
 __all__ = [
@@ -34,7 +35,7 @@ def nearest_distances(
 ) -> np.ndarray:
     """Distance (N,) from each point of ``xyz`` to its nearest point of ``ref_xyz``, metres."""
     tree = tree if tree is not None else cKDTree(ref_xyz)
-    d, _ = tree.query(xyz, workers=workers)
+    d, _ = tree.query(xyz, workers=query_workers(len(xyz), workers))
     return d
 
 

@@ -16,6 +16,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from ..curve import Centerline
+from ..spatial import query_workers
 from ..transforms import apply_transform
 
 __all__ = ["refine_stable"]
@@ -56,7 +57,7 @@ def refine_stable(
         moved = apply_transform(total, cmp_xyz)
         sel = cmp_s.copy()
         if keep < 1.0:
-            d, _ = tree.query(moved, workers=-1)
+            d, _ = tree.query(moved, workers=query_workers(len(moved)))
             sel &= d <= np.quantile(d[cmp_s], keep)
         src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved[sel]))
         src = src.voxel_down_sample(voxel)

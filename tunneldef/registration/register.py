@@ -24,7 +24,7 @@ from ..curve import Centerline
 from ..errors import NotATunnelError, RegistrationError
 from ..frame import TunnelFrame, principal_frame
 from ..progress import ProgressCallback, notify
-from ..spatial import random_subset
+from ..spatial import query_workers, random_subset
 from .baselines import BASELINES
 from .metrics import (
     apply_transform,
@@ -165,7 +165,7 @@ def register(
 
     transform = f_ref_inv @ local @ coarse
     moved_l = apply_transform(local @ coarse, cmp_s)
-    d, _ = ref_tree.query(moved_l, workers=-1)
+    d, _ = ref_tree.query(moved_l, workers=query_workers(len(moved_l)))
     overlap = _common_overlap(d, moved_l, ref_cl, ref_l, ref_frame)
     _check_overlap(moved_l, ref_l, ref_cl, ref_frame, overlap, rc)
     fit = fitness(d)
@@ -239,7 +239,7 @@ def _best_candidate(
             candidates.append((-1.0, np.inf, q, None, str(exc)))
             continue
         moved = apply_transform(local, cmp_l)
-        d, _ = ctx.ref_tree.query(moved, workers=-1)
+        d, _ = ctx.ref_tree.query(moved, workers=query_workers(len(moved)))
         score = _common_overlap(d, moved, ctx.ref_cl, ctx.ref_l, ctx.ref_frame)
         fit = fitness(d)
         stage_t[method if method != "centerline" else "fine"] = time.perf_counter() - t0
