@@ -370,10 +370,13 @@ class Outline:
                 fu, fv = cu + r * np.cos(a), cv + r * np.sin(a)
                 nu, nv = -np.cos(a), -np.sin(a)
             d = np.hypot(u - fu, v - fv)
-            better = d < best
-            best = np.where(better, d, best)
             inside = (u - fu) * nu + (v - fv) * nv > 0
-            sign = np.where(better, np.where(inside, -1.0, 1.0), sign)
+            # nearest to a corner shared with an earlier segment (a tie): inside only if on
+            # the inner side of both (else obtuse corners, e.g. a trapezoid's, flip the sign)
+            tie = np.abs(d - best) <= 1e-9
+            better = (d < best) & ~tie
+            best = np.where(better, d, best)
+            sign = np.where(better, np.where(inside, -1.0, 1.0), np.where(tie & ~inside, 1.0, sign))
         return sign * best
 
     def half_width(self, v: np.ndarray | float) -> np.ndarray:
