@@ -713,23 +713,13 @@ class _Sampler:
         self.branches, self.openings, self.pipes = branches, openings, pipes
         self.spec, self.rng = spec, rng
         self.parts: list[dict[str, np.ndarray]] = []
+        self._current: tuple[Branch, int, Stretch, float] | None = None
 
-    def _emit(
-        self,
-        b: Branch,
-        k: int,
-        st: Stretch,
-        tau0: float,
-        s,
-        u,
-        v,
-        comp,
-        label,
-        surface,
-        disp=None,
-        along=None,
-    ) -> None:
-        """Map section samples to the reference frame with noise; record their truth."""
+    def _emit(self, s, u, v, comp, label, surface, disp=None) -> None:
+        """Map section samples of the current stretch to the reference frame with noise and
+        record their truth (chainage of the noisy point to first order: the along-axis part of
+        the noise over the sweep's stretch ``1 - k . (u, v)``)."""
+        b, k, st, tau0 = self._current
         rng, sigma = self.rng, self.spec.noise_sigma
         n = s.shape[0]
         xyz = b.to_world(s, u, v)
@@ -738,8 +728,7 @@ class _Sampler:
             noise = rng.normal(0.0, sigma, (n, 3))
             xyz += noise
             t = b.frames(s)[1]
-            jac = b.jacobian(s, u, v) if along is None else along
-            chainage += np.einsum("ij,ij->i", noise, t) / np.maximum(jac, 0.1)
+            chainage += np.einsum("ij,ij->i", noise, t) / np.maximum(b.jacobian(s, u, v), 0.1)
         self.parts.append(
             {
                 "xyz": xyz,
@@ -783,6 +772,7 @@ class _Sampler:
     def stretch(self, k: int, st: Stretch, tau0: float, deformations) -> int:
         """Sample one stretch; returns its number of shell points."""
         b, rng, spec = self.branches[st.branch], self.rng, self.spec
+        self._current = (b, k, st, tau0)
         out = b.outline
         a, e = sorted((st.start, st.end))
         per = out.perimeter
@@ -809,26 +799,14 @@ class _Sampler:
                 v[i:j] += shift * nv[i:j]
                 disp[i:j] -= shift
             n_shell += s.shape[0]
-            self._emit(b, k, st, tau0, s, u, v, _C_SHELL, LABEL_SHELL, surf, disp)
+            self._emit(s, u, v, _C_SHELL, LABEL_SHELL, surf, disp)
         # dead-end faces
         for at_end, s_face in ((0, 0.0), (1, b.length)):
             if b.spec.faces[at_end] and (a if at_end == 0 else e) == s_face:
                 u, v = self._inside_section(out, spec.density * _area(out), 0.0)
                 s = np.full(u.shape[0], s_face)
                 n_shell += u.shape[0]
-                self._emit(
-                    b,
-                    k,
-                    st,
-                    tau0,
-                    s,
-                    u,
-                    v,
-                    _C_SHELL,
-                    LABEL_SHELL,
-                    SURFACE_FACE,
-                    along=np.ones(u.shape[0]),
-                )
+                self._emit(s, u, v, _C_SHELL, LABEL_SHELL, SURFACE_FACE)
         # pipes and cables
         if spec.equipment and b.spec.equipment:
             for uc, vc, r, comp in self.pipes[b.index]:
@@ -838,25 +816,13 @@ class _Sampler:
                 u, v = uc + r * np.cos(ang), vc + r * np.sin(ang)
                 keep = np.ones(m, dtype=bool)
                 self._cut(b, s, u, v, keep, before_only=True)
-                self._emit(
-                    b,
-                    k,
-                    st,
-                    tau0,
-                    s[keep],
-                    u[keep],
-                    v[keep],
-                    comp,
-                    LABEL_EQUIPMENT,
-                    SURFACE_NONE,
-                    along=np.ones(int(keep.sum())),
-                )
+                self._emit(s[keep], u[keep], v[keep], comp, LABEL_EQUIPMENT, SURFACE_NONE)
         # outliers inside the tunnel
         m = int(round(spec.outlier_fraction * n_shell))
         if m:
             u, v = self._inside_section(out, m, 0.05)
             s = rng.uniform(a, e, u.shape[0])
-            self._emit(b, k, st, tau0, s, u, v, _C_OUTLIER, LABEL_OUTLIER, SURFACE_NONE)
+            self._emit(s, u, v, _C_OUTLIER, LABEL_OUTLIER, SURFACE_NONE)
         return n_shell
 
     def _inside_section(self, out: Outline, n: float, margin: float):
