@@ -526,10 +526,17 @@ class Branch:
     def inside(self, xyz: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """True for points inside this edge's tube (between its end sections, deeper than
         ``margin`` inside the outline)."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        out = np.zeros(len(xyz), dtype=bool)
         if len(xyz) == 0:
-            return np.zeros(0, dtype=bool)
-        sd, pr = self.signed_distance(xyz)
-        return pr.inside & (sd < -margin)
+            return out
+        # only points near the axis can be inside: a cheap bounded nearest-sample query first
+        reach = self.radius + max(0.0, -margin) + self.step
+        near = np.flatnonzero(np.isfinite(self.tree.query(xyz, distance_upper_bound=reach)[0]))
+        if near.size:
+            sd, pr = self.signed_distance(xyz[near])
+            out[near] = pr.inside & (sd < -margin)
+        return out
 
 
 def build_branches(network: NetworkSpec) -> tuple[Branch, ...]:
