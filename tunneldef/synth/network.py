@@ -862,7 +862,7 @@ class _Sampler:
             self._emit(s, u, v, _C_SHELL, LABEL_SHELL, surf, disp)
         # dead-end faces
         for at_end, s_face in ((0, 0.0), (1, b.length)):
-            if b.spec.faces[at_end] and (a if at_end == 0 else e) == s_face:
+            if b.spec.faces[at_end] and abs((a if at_end == 0 else e) - s_face) < 1e-6:
                 u, v = self._inside_section(out, spec.density * _area(out), 0.0)
                 s = np.full(u.shape[0], s_face)
                 n_shell += u.shape[0]
@@ -1087,6 +1087,15 @@ def make_network_pair(
         ``ref`` in the design (reference) frame, drifted; ``cmp`` deformed, drifted (its own
         drift) and moved by a rigid motion; both with a ``uint16`` ``intensity`` field, points
         in walk order then the strays; ``truth`` (:class:`NetworkTruth`).
+
+    Examples
+    --------
+    >>> pair = make_network_pair(density=50, seed=1)
+    >>> t = pair.truth
+    >>> ramp = t.cmp.shell & (t.cmp.branch == 4)  # the ramp's shell in the compared epoch
+    >>> moved = t.cmp.displacement[ramp] < 0  # its roof sag (truth, m)
+    >>> in_ref = pair.cmp.xyz @ t.transform[:3, :3].T + t.transform[:3, 3]
+    >>> drift = in_ref - t.cmp.xyz_ref  # == t.cmp.drift_offset()
     """
     if spec is None:
         spec = network_250m_pair(**changes)
