@@ -13,6 +13,7 @@ from tunneldef.centerline.fit import (
     LENGTH_MARGIN,
     MAX_EVAL_POINTS,
     _design_matrix,
+    _weighted_lstsq,
     fit_centerline,
     fit_cubic_bspline,
     fit_nurbs,
@@ -60,7 +61,8 @@ def test_design_matrix_equals_geomdl_basis() -> None:
     for k, x in enumerate(t):
         span = helpers.find_span_linear(degree, knots, n_ctrl, float(x))
         ref[k, span - degree : span + 1] = helpers.basis_function(degree, knots, span, float(x))
-    np.testing.assert_allclose(_design_matrix(degree, knots, n_ctrl, t), ref, rtol=0, atol=1e-12)
+    got = _design_matrix(degree, knots, n_ctrl, t).toarray()
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
 
 
 def test_fit_keeps_geomdl_reference_curve() -> None:
@@ -135,3 +137,20 @@ def test_non_finite_centres_are_refused() -> None:
         fit_nurbs(q)
     with pytest.raises(InvalidCloudError, match="non-decreasing"):
         fit_nurbs(np.nan_to_num(q), params=np.arange(10.0)[::-1])
+
+
+def test_banded_solution_equals_dense_least_squares() -> None:
+    rng = np.random.default_rng(7)
+    s = np.sort(rng.uniform(0.0, 80.0, 160))
+    q = _arc(s) + rng.normal(0, 0.01, (160, 3))
+    w = rng.uniform(0.0, 1.0, 160)
+    knots = [0.0] * 4 + list(np.linspace(0, 1, 32)[1:-1]) + [1.0] * 4
+    t = (s - s[0]) / (s[-1] - s[0])
+    a = _design_matrix(3, knots, 34, t)
+    sw = np.sqrt(w)[:, None]
+    dense, *_ = np.linalg.lstsq(a.toarray() * sw, q * sw, rcond=None)
+    np.testing.assert_allclose(_weighted_lstsq(a, q, w, 3), dense, rtol=0, atol=1e-8)
+    w[(s > 30) & (s < 45)] = 0.0  # control points without data: the dense fallback
+    sw = np.sqrt(w)[:, None]
+    dense, *_ = np.linalg.lstsq(a.toarray() * sw, q * sw, rcond=None)
+    np.testing.assert_allclose(_weighted_lstsq(a, q, w, 3), dense, rtol=0, atol=1e-8)

@@ -36,6 +36,8 @@ import numpy as np
 from geomdl import NURBS
 from geomdl.fitting import compute_knot_vector2
 from scipy.interpolate import BSpline
+from scipy.linalg import LinAlgError, solveh_banded
+from scipy.sparse import csr_array
 
 from ..errors import ImplausibleExtentError, InvalidCloudError, NotATunnelError
 from .curve import Centerline
@@ -174,11 +176,40 @@ class NurbsFit:
         return _path_length(self.evaluate(np.linspace(0.0, 1.0, n)))
 
 
-def _design_matrix(degree: int, knots: list[float], n_ctrl: int, params: np.ndarray) -> np.ndarray:
-    a = BSpline.design_matrix(params, np.asarray(knots, dtype=np.float64), degree).toarray()
+def _design_matrix(degree: int, knots: list[float], n_ctrl: int, params: np.ndarray) -> csr_array:
+    """B-spline basis values (K, C), sparse: degree + 1 non-zeros per row."""
+    a = BSpline.design_matrix(params, np.asarray(knots, dtype=np.float64), degree)
     if a.shape[1] != n_ctrl:  # pragma: no cover - a knot vector of the wrong length
         raise ValueError(f"design matrix has {a.shape[1]} columns, expected {n_ctrl}")
-    return a
+    return csr_array(a)
+
+
+def _weighted_lstsq(a: csr_array, q: np.ndarray, w: np.ndarray, degree: int) -> np.ndarray:
+    """Control points minimising sum_k w_k |a_k P - q_k|^2.
+
+    The normal matrix of a B-spline fit is banded (bandwidth ``degree``), so it is solved by a
+    banded Cholesky factorisation in O(C); if a control point has (almost) no data weight, or
+    the factorisation fails, the dense minimum-norm least-squares solution of the previous
+    implementation is used instead.
+    """
+    aw = a.multiply(w[:, None]).tocsr()
+    normal = (a.T @ aw).tocoo()
+    rhs = aw.T @ q
+    n = a.shape[1]
+    upper = normal.row <= normal.col
+    band = np.zeros((degree + 1, n))
+    band[degree + normal.row[upper] - normal.col[upper], normal.col[upper]] = normal.data[upper]
+    diag = band[degree]
+    if diag.min() > 1e-9 * diag.max():  # every control point has data weight
+        try:
+            ctrl = solveh_banded(band, rhs, check_finite=False)
+            if np.all(np.isfinite(ctrl)):
+                return ctrl
+        except LinAlgError:
+            pass
+    sw = np.sqrt(w)[:, None]
+    ctrl, *_ = np.linalg.lstsq(a.toarray() * sw, q * sw, rcond=None)
+    return ctrl
 
 
 def fit_nurbs(
@@ -239,8 +270,7 @@ def fit_nurbs(
     prior = np.ones(k) if weights is None else np.asarray(weights, dtype=np.float64)
     w = prior.copy()
     for it in range(iterations if robust else 1):
-        sw = np.sqrt(w)[:, None]
-        ctrl, *_ = np.linalg.lstsq(a * sw, q * sw, rcond=None)
+        ctrl = _weighted_lstsq(a, q, w, degree)
         res = np.linalg.norm(a @ ctrl - q, axis=1)
         if not robust:
             break
