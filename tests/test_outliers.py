@@ -137,3 +137,20 @@ def test_neighbour_pairs_and_compression() -> None:
     r, c = _neighbour_pairs(cells)
     pairs = {tuple(sorted(p)) for p in zip(r.tolist(), c.tolist(), strict=True)}
     assert pairs == {(0, 1), (3, 4)}
+
+
+def test_real_drift_keeps_its_points(drift_path) -> None:  # noqa: ANN001
+    """The Freiberg drift (2.68 M TLS points, pipes and cables on the walls): with a point
+    130 m away and three small clusters planted, those go and < 0.1 % of the scan does
+    (measured: 0.009 %)."""
+    from tunneldef.io import read
+
+    xyz = read(drift_path).xyz
+    rng = np.random.default_rng(8)
+    planted = np.concatenate(
+        [[[0.0, 130.0, 0.0]]]
+        + [c + rng.normal(0, 0.05, (5, 3)) for c in ([6, 20, 0], [-9, 0, 3], [0, -40, 1])]
+    )
+    keep = remove_strays(np.concatenate([xyz, planted]))
+    assert not keep[len(xyz) :].any()
+    assert (~keep[: len(xyz)]).mean() < 0.001

@@ -274,9 +274,9 @@ def remove_strays(
         hundred thousand voxels.
     radius : float
         Radius of the neighbour count, metres (ours: 0.5 m, a quarter of the narrowest drift
-        width we expect, 2 m). A voxel of the shell sees 60-90 occupied voxels within it (75
-        at a scan's edge), one on a lone cable across the void about 2 per 0.1 m of cable
-        seen; a point a metre off the wall sees none of the wall.
+        width we expect, 2 m). A voxel of the shell sees about 90 occupied voxels within it
+        (half as many at the end of a scan), one on a lone cable across the void only the
+        cable's, up to 10; a point a metre off the wall sees none of the wall.
     min_neighbours : int
         Fewest other occupied voxels within ``radius`` (ours: 4: a cable with a point every
         12 cm still has 8, a cluster of a few points or ghost scatter of a few points per m^3
