@@ -94,7 +94,7 @@ def test_300_m_centreline_is_fast_and_sampled_by_its_own_length() -> None:
     )
     assert cl.length == pytest.approx(true_length, abs=0.1)
     assert len(cl.points) == int(np.ceil(cl.length / 0.05)) + 1
-    assert cl.meta["eval_step_m"] == pytest.approx(0.025, rel=1e-3)
+    assert cl.meta["eval_step_m"] == pytest.approx(0.025, rel=1e-2)
     assert fit.arc_length() == pytest.approx(cl.length, abs=1e-3)
 
 

@@ -21,11 +21,10 @@ centres (The NURBS Book, 2nd ed., §9.4.1):
 The knots come from geomdl and a ``geomdl.NURBS.Curve`` is kept as the reference object, but
 the curve is evaluated with :class:`scipy.interpolate.BSpline` (a rational B-spline is the
 B-spline of the weighted control points divided by the B-spline of the weights), vectorised in
-C, and resampled as a :class:`~tunneldef.centerline.curve.Centerline`. How often it is evaluated
-follows the curve's own arc length, never the parameter span it was given, and a span or a
+C, and resampled as a :class:`~tunneldef.centerline.curve.Centerline`. A station span or a
 curve far longer than the path through the centres raises
-:class:`~tunneldef.errors.ImplausibleExtentError` at once (stray points or a wrong unit),
-instead of sampling an absurd curve for minutes.
+:class:`~tunneldef.errors.ImplausibleExtentError` at once (stray points or a wrong unit)
+instead of being sampled for minutes, and the number of evaluations is capped.
 """
 
 from __future__ import annotations
@@ -338,9 +337,11 @@ def fit_centerline(
 
     Notes
     -----
-    The curve is evaluated every ``sample_step / 2`` metres of its own arc length (at most
-    ``MAX_EVAL_POINTS`` times) and then resampled every ``sample_step`` metres, so the work is
-    bounded by the data, never by the parameter span.
+    The curve is evaluated at one parameter per ``sample_step / 2`` metres of station span
+    (the parameter is chord length, so about every ``sample_step / 2`` metres of arc; at most
+    ``MAX_EVAL_POINTS`` times) and then resampled every ``sample_step`` metres. Both the span
+    and the curve's arc length are checked against the path through the centres first, so the
+    work is bounded by the data.
     """
     q = np.asarray(centres, dtype=np.float64)
     if params is None:
@@ -355,7 +356,9 @@ def fit_centerline(
     fit = fit_nurbs(q, params=params, degree=degree, n_ctrl=min(n_ctrl, len(q)), weights=weights)
     length = fit.arc_length()
     check_curve_length(length, path, "the fitted centreline")
-    n_eval = int(np.clip(np.ceil(length / (sample_step / 2)) + 1, 2, MAX_EVAL_POINTS))
+    # as many parameters as half-steps along the stations (both checked against the data):
+    # the parameter is chord length, so that is about one evaluation per sample_step / 2 of arc
+    n_eval = int(np.clip(np.ceil(span / (sample_step / 2)) + 1, 2, MAX_EVAL_POINTS))
     pts = fit.evaluate(np.linspace(0.0, 1.0, n_eval))
     info = {
         "method": "nurbs_least_squares",
@@ -397,6 +400,6 @@ def fit_cubic_bspline(
     spline = make_interp_spline(t, q, k=min(3, len(q) - 1), axis=0)
     length = _path_length(spline(np.linspace(t[0], t[-1], max(32 * len(q), 1024))))
     check_curve_length(length, path, "the cubic B-spline")
-    n_eval = int(np.clip(np.ceil(length / (sample_step / 2)) + 1, 2, MAX_EVAL_POINTS))
+    n_eval = int(np.clip(np.ceil((t[-1] - t[0]) / (sample_step / 2)) + 1, 2, MAX_EVAL_POINTS))
     pts = spline(np.linspace(t[0], t[-1], n_eval))
     return _from_vertices(pts, q, sample_step, {"method": "cubic_bspline_interpolation"})
