@@ -154,3 +154,16 @@ def test_banded_solution_equals_dense_least_squares() -> None:
     sw = np.sqrt(w)[:, None]
     dense, *_ = np.linalg.lstsq(a.toarray() * sw, q * sw, rcond=None)
     np.testing.assert_allclose(_weighted_lstsq(a, q, w, 3), dense, rtol=0, atol=1e-8)
+
+
+def test_max_length_from_the_cloud() -> None:
+    s = np.arange(0.0, 100.0001, 0.5)
+    q = _arc(s)
+    cl, _ = fit_centerline(q, params=s, max_length=101.0)
+    assert cl.length == pytest.approx(100.0, abs=0.05)
+    with pytest.raises(ImplausibleExtentError, match="at most 99 m"):
+        fit_centerline(q, params=s, max_length=99.0)
+    far = q.copy()
+    far[-1] += [0.0, 0.0, 300.0]  # one centre 300 m off: its path is too long for the cloud
+    with pytest.raises(ImplausibleExtentError, match="the centres' path"):
+        fit_centerline(far, params=s, max_length=150.0)

@@ -101,6 +101,17 @@ def nurbs_points(
     return h[:, :-1] / h[:, -1:]
 
 
+def _check_max_length(lengths: dict[str, float], max_length: float | None) -> None:
+    if max_length is None:
+        return
+    for what, length in lengths.items():
+        if not length <= max_length:
+            raise ImplausibleExtentError(
+                f"{what} is {length:.4g} m but the cloud holds at most {max_length:.4g} m of "
+                "tunnel; remove stray points (tunneldef.outliers.remove_strays) or check the units"
+            )
+
+
 def _path_length(q: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(q, axis=0), axis=1)))
 
@@ -303,6 +314,7 @@ def fit_centerline(
     sample_step: float = 0.05,
     weights: np.ndarray | None = None,
     meta: dict | None = None,
+    max_length: float | None = None,
 ) -> tuple[Centerline, NurbsFit]:
     """The NURBS centreline of slice centres, resampled every ``sample_step`` metres.
 
@@ -323,6 +335,11 @@ def fit_centerline(
         Prior data weights of the centres.
     meta : dict, optional
         Extra metadata stored in the centreline.
+    max_length : float, optional
+        Longest curve the cloud can hold, metres, e.g. from
+        :func:`tunneldef.outliers.robust_extent` (``2 * extent.diagonal`` allows a 90 degree
+        bend with room to spare). The station span, the path through the centres and the
+        curve may not exceed it. Default: no bound but the centres' own path.
 
     Returns
     -------
@@ -333,7 +350,8 @@ def fit_centerline(
     ------
     ImplausibleExtentError
         If the stations span, or the fitted curve is, longer than ``LENGTH_FACTOR`` times the
-        path through the centres plus ``LENGTH_MARGIN`` metres (a stray point, a wrong unit).
+        path through the centres plus ``LENGTH_MARGIN`` metres (a stray point, a wrong unit),
+        or any of them exceeds ``max_length``.
 
     Notes
     -----
@@ -352,10 +370,14 @@ def fit_centerline(
     path = _path_length(q)
     span = float(params[-1] - params[0])
     check_curve_length(span, path, "the span of the slice stations")
+    _check_max_length(
+        {"the span of the slice stations": span, "the centres' path": path}, max_length
+    )
     n_ctrl = int(round(span / ctrl_spacing)) + degree
     fit = fit_nurbs(q, params=params, degree=degree, n_ctrl=min(n_ctrl, len(q)), weights=weights)
     length = fit.arc_length()
     check_curve_length(length, path, "the fitted centreline")
+    _check_max_length({"the fitted centreline": length}, max_length)
     # as many parameters as half-steps along the stations (both checked against the data):
     # the parameter is chord length, so that is about one evaluation per sample_step / 2 of arc
     n_eval = int(np.clip(np.ceil(span / (sample_step / 2)) + 1, 2, MAX_EVAL_POINTS))
