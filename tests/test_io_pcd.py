@@ -106,9 +106,13 @@ def _layouts(rng: np.random.Generator, n: int) -> dict[str, list[tuple[str, np.n
     packed = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
     f = [("x", xyz[:, 0]), ("y", xyz[:, 1]), ("z", xyz[:, 2])]
     return {
-        # a handheld SLAM export: intensity and a float-packed colour
+        # a handheld SLAM export as PCL writes it: alpha 255 in the top byte of a float rgb,
+        # so every colour with red >= 128 is a NaN bit pattern
         "slam": f
-        + [("intensity", rng.random(n).astype(np.float32)), ("rgb", packed.view(np.float32))],
+        + [
+            ("intensity", rng.random(n).astype(np.float32)),
+            ("rgb", (packed | np.uint32(0xFF000000)).view(np.float32)),
+        ],
         "rgba_and_count": f
         + [
             ("rgba", packed | (rng.integers(0, 256, n).astype(np.uint32) << 24)),
