@@ -154,3 +154,14 @@ def test_real_drift_keeps_its_points(drift_path) -> None:  # noqa: ANN001
     keep = remove_strays(np.concatenate([xyz, planted]))
     assert not keep[len(xyz) :].any()
     assert (~keep[: len(xyz)]).mean() < 0.001
+
+
+def test_too_sparse_a_cloud_is_reported(caplog: pytest.LogCaptureFixture) -> None:
+    rng = np.random.default_rng(9)
+    xyz = np.c_[rng.uniform(0, 50, 2000), rng.uniform(0, 5, 2000), rng.uniform(0, 3, 2000)]
+    with caplog.at_level("WARNING", logger="tunneldef.outliers"):
+        keep = remove_strays(xyz)  # ~3 points per m^3: everything looks stray
+    assert (~keep).mean() > 0.5
+    assert "larger voxel" in caplog.text
+    with pytest.raises(ValueError, match="unit vectors"):
+        robust_extent(xyz, directions=[2.0, 0.0, 0.0])

@@ -32,6 +32,7 @@ __all__ = ["StrayReport", "Extent", "remove_strays", "stray_report", "robust_ext
 log = logging.getLogger(__name__)
 
 _PACK_BITS = 21  # voxel index bits per axis when packed into one int64 key
+_WARN_FRACTION = 0.02  # warn when more than this fraction of a cloud is called stray
 
 
 @dataclass(frozen=True)
@@ -237,6 +238,12 @@ def stray_report(
 
     keep = keep_vox[inverse]
     report = StrayReport(keep, sparse, distant, detached, n_vox)
+    if report.removed > _WARN_FRACTION * len(p):
+        log.warning(
+            "strays: %.1f %% of the points look like strays; a cloud sparser than about "
+            "100 points per m^2 needs a larger voxel and radius",
+            100.0 * report.removed / len(p),
+        )
     log.info(
         "strays: %d of %d points removed (%d sparse, %d distant, %d detached; %d voxels)",
         report.removed,
@@ -374,6 +381,8 @@ def robust_extent(
         raise ValueError(f"quantile must be a percentage in [0, 50), got {quantile!r}")
     if directions is not None:
         d = np.atleast_2d(np.asarray(directions, dtype=np.float64))
+        if d.ndim != 2 or d.shape[1] != 3 or not np.allclose(np.linalg.norm(d, axis=1), 1.0):
+            raise ValueError("directions must be unit vectors, shape (3,) or (D, 3)")
         ref = np.median(p, axis=0)
         p = (p - ref) @ d.T
         lo, hi = np.percentile(p, [quantile, 100.0 - quantile], axis=0)
