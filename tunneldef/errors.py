@@ -17,6 +17,7 @@ __all__ = [
     "EpochMismatchError",
     "ConfigError",
     "MissingFileError",
+    "ImplausibleExtentError",
 ]
 
 
@@ -54,3 +55,8 @@ class ConfigError(TunnelDefError):
 
 class MissingFileError(TunnelDefError):
     """An input file does not exist or is not a regular file."""
+
+
+class ImplausibleExtentError(NotATunnelError):
+    """A length or extent is absurd against the data (e.g. a centreline far longer than the
+    slice centres it was fitted to), usually because of stray points or a bad unit."""

@@ -18,8 +18,13 @@ centres (The NURBS Book, 2nd ed., §9.4.1):
   data with the knots and control points;
 * the ends are free (not clamped to the first and last noisy centres).
 
-The curve is evaluated with ``geomdl.NURBS.Curve`` and resampled as a
-:class:`~tunneldef.curve.Centerline`.
+The knots come from geomdl and a ``geomdl.NURBS.Curve`` is kept as the reference object, but
+the curve is evaluated with :class:`scipy.interpolate.BSpline` (a rational B-spline is the
+B-spline of the weighted control points divided by the B-spline of the weights), vectorised in
+C, and resampled as a :class:`~tunneldef.curve.Centerline`. A station span or a
+curve far longer than the path through the centres raises
+:class:`~tunneldef.errors.ImplausibleExtentError` at once (stray points or a wrong unit)
+instead of being sampled for minutes, and the number of evaluations is capped.
 """
 
 from __future__ import annotations
@@ -27,13 +32,114 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from geomdl import NURBS, helpers
+from geomdl import NURBS
 from geomdl.fitting import compute_knot_vector2
+from scipy.interpolate import BSpline
+from scipy.linalg import LinAlgError, solveh_banded
+from scipy.sparse import csr_array
 
 from ..curve import Centerline
-from ..errors import NotATunnelError
+from ..errors import ImplausibleExtentError, InvalidCloudError, NotATunnelError
 
-__all__ = ["NurbsFit", "fit_nurbs", "fit_centerline", "fit_line", "fit_cubic_bspline"]
+__all__ = [
+    "NurbsFit",
+    "fit_nurbs",
+    "fit_centerline",
+    "fit_line",
+    "fit_cubic_bspline",
+    "nurbs_points",
+    "check_curve_length",
+    "MAX_EVAL_POINTS",
+    "LENGTH_FACTOR",
+    "LENGTH_MARGIN",
+]
+
+#: Most points one curve is evaluated at (50 km at the default 2.5 cm); past it the evaluation
+#: step grows and the centreline's meta data say so (``eval_step_m``).
+MAX_EVAL_POINTS = 2_000_000
+#: A curve or station span may be at most ``LENGTH_FACTOR`` times the path through its centres
+#: plus ``LENGTH_MARGIN`` metres (ours: a fitted centreline is as long as that path to within
+#: centimetres; 1.5 x + 10 m leaves room for gaps in bends and slice noise, while a stray point
+#: or a wrong unit makes it hundreds of times longer).
+LENGTH_FACTOR = 1.5
+LENGTH_MARGIN = 10.0
+
+
+def nurbs_points(
+    degree: int,
+    knots: np.ndarray,
+    ctrlpts: np.ndarray,
+    weights: np.ndarray,
+    params: np.ndarray,
+) -> np.ndarray:
+    """Points of a NURBS curve at many parameters, vectorised (scipy, in C).
+
+    Parameters
+    ----------
+    degree : int
+        Curve degree.
+    knots : ndarray, shape (C + degree + 1,)
+        Clamped, non-decreasing knot vector.
+    ctrlpts : ndarray, shape (C, D)
+        Control points (metres for a centreline).
+    weights : ndarray, shape (C,)
+        Positive control-point weights.
+    params : ndarray, shape (M,)
+        Parameters, clipped to ``[knots[degree], knots[-degree - 1]]``.
+
+    Returns
+    -------
+    ndarray, shape (M, D)
+        ``sum_i N_i(t) w_i P_i / sum_i N_i(t) w_i``; equals ``geomdl.NURBS.Curve`` evaluation
+        to rounding (tested to 1e-9 m).
+    """
+    t = np.asarray(knots, dtype=np.float64)
+    c = np.asarray(ctrlpts, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    u = np.clip(np.asarray(params, dtype=np.float64), t[degree], t[-degree - 1])
+    h = BSpline(t, np.column_stack([c * w[:, None], w]), degree, extrapolate=False)(u)
+    return h[:, :-1] / h[:, -1:]
+
+
+def _check_max_length(lengths: dict[str, float], max_length: float | None) -> None:
+    if max_length is None:
+        return
+    for what, length in lengths.items():
+        if not length <= max_length:
+            raise ImplausibleExtentError(
+                f"{what} is {length:.4g} m but the cloud holds at most {max_length:.4g} m of "
+                "tunnel; remove stray points (tunneldef.outliers.remove_strays) or check the units"
+            )
+
+
+def _path_length(q: np.ndarray) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(q, axis=0), axis=1)))
+
+
+def check_curve_length(length: float, path: float, what: str) -> None:
+    """Raise if ``length`` is absurd against ``path``, the length of the path through the data.
+
+    Parameters
+    ----------
+    length : float
+        Length to check (a curve's arc length or a span of stations), metres.
+    path : float
+        Length of the polyline through the slice centres, metres.
+    what : str
+        What ``length`` is, for the message.
+
+    Raises
+    ------
+    ImplausibleExtentError
+        If ``length`` is not finite or exceeds ``LENGTH_FACTOR * path + LENGTH_MARGIN``.
+    """
+    limit = LENGTH_FACTOR * path + LENGTH_MARGIN
+    if not np.isfinite(length) or length > limit:
+        raise ImplausibleExtentError(
+            f"{what} is {length:.4g} m but the slice centres lie along only {path:.4g} m "
+            f"(limit {limit:.4g} m); remove stray points (tunneldef.outliers.remove_strays) "
+            "or check the units"
+        )
 
 
 @dataclass(frozen=True)
@@ -64,17 +170,56 @@ class NurbsFit:
     data_weights: np.ndarray
     residuals: np.ndarray
 
+    @property
+    def degree(self) -> int:
+        """Curve degree."""
+        return len(self.knots) - len(self.ctrlpts) - 1
+
     def evaluate(self, params: np.ndarray) -> np.ndarray:
-        """Curve points (M, 3) at parameters in [0, 1]."""
-        return np.asarray(self.curve.evaluate_list([float(t) for t in np.clip(params, 0, 1)]))
+        """Curve points (M, 3) at parameters in [0, 1] (clipped), metres."""
+        return nurbs_points(self.degree, self.knots, self.ctrlpts, self.weights, params)
+
+    def arc_length(self, n: int | None = None) -> float:
+        """Length of the curve, metres, from ``n`` evaluations (default 32 per control point,
+        at least 1024, at most ``MAX_EVAL_POINTS``); a slight underestimate."""
+        n = n or int(np.clip(32 * len(self.ctrlpts), 1024, MAX_EVAL_POINTS))
+        return _path_length(self.evaluate(np.linspace(0.0, 1.0, n)))
 
 
-def _design_matrix(degree: int, knots: list[float], n_ctrl: int, params: np.ndarray) -> np.ndarray:
-    a = np.zeros((len(params), n_ctrl))
-    for k, t in enumerate(params):
-        span = helpers.find_span_linear(degree, knots, n_ctrl, float(t))
-        a[k, span - degree : span + 1] = helpers.basis_function(degree, knots, span, float(t))
-    return a
+def _design_matrix(degree: int, knots: list[float], n_ctrl: int, params: np.ndarray) -> csr_array:
+    """B-spline basis values (K, C), sparse: degree + 1 non-zeros per row."""
+    a = BSpline.design_matrix(params, np.asarray(knots, dtype=np.float64), degree)
+    if a.shape[1] != n_ctrl:  # pragma: no cover - a knot vector of the wrong length
+        raise ValueError(f"design matrix has {a.shape[1]} columns, expected {n_ctrl}")
+    return csr_array(a)
+
+
+def _weighted_lstsq(a: csr_array, q: np.ndarray, w: np.ndarray, degree: int) -> np.ndarray:
+    """Control points minimising sum_k w_k |a_k P - q_k|^2.
+
+    The normal matrix of a B-spline fit is banded (bandwidth ``degree``), so it is solved by a
+    banded Cholesky factorisation in O(C); if a control point has (almost) no data weight, or
+    the factorisation fails, the dense minimum-norm least-squares solution of the previous
+    implementation is used instead.
+    """
+    aw = a.multiply(w[:, None]).tocsr()
+    normal = (a.T @ aw).tocoo()
+    rhs = aw.T @ q
+    n = a.shape[1]
+    upper = normal.row <= normal.col
+    band = np.zeros((degree + 1, n))
+    band[degree + normal.row[upper] - normal.col[upper], normal.col[upper]] = normal.data[upper]
+    diag = band[degree]
+    if diag.min() > 1e-9 * diag.max():  # every control point has data weight
+        try:
+            ctrl = solveh_banded(band, rhs, check_finite=False)
+            if np.all(np.isfinite(ctrl)):
+                return ctrl
+        except LinAlgError:
+            pass
+    sw = np.sqrt(w)[:, None]
+    ctrl, *_ = np.linalg.lstsq(a.toarray() * sw, q * sw, rcond=None)
+    return ctrl
 
 
 def fit_nurbs(
@@ -111,9 +256,13 @@ def fit_nurbs(
     ------
     NotATunnelError
         If there are fewer than ``degree + 1`` centres.
+    InvalidCloudError
+        If centres or parameters are not finite, or the parameters decrease.
     """
     q = np.asarray(centres, dtype=np.float64)
     k = len(q)
+    if q.ndim != 2 or q.shape[1] != 3 or not np.all(np.isfinite(q)):
+        raise InvalidCloudError(f"centres must be a finite K x 3 array, got shape {q.shape}")
     if k < degree + 1:
         raise NotATunnelError(
             f"only {k} slice centres for a degree-{degree} centreline (need {degree + 1}); "
@@ -122,6 +271,8 @@ def fit_nurbs(
     if params is None:
         params = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
     t = np.asarray(params, dtype=np.float64)
+    if t.shape != (k,) or not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0):
+        raise InvalidCloudError("centre parameters must be K finite, non-decreasing values")
     t = (t - t[0]) / max(t[-1] - t[0], 1e-12)
     n_ctrl = int(np.clip(n_ctrl or k // 2, degree + 1, k))
     knots = compute_knot_vector2(degree, k, n_ctrl, list(t))
@@ -129,8 +280,7 @@ def fit_nurbs(
     prior = np.ones(k) if weights is None else np.asarray(weights, dtype=np.float64)
     w = prior.copy()
     for it in range(iterations if robust else 1):
-        sw = np.sqrt(w)[:, None]
-        ctrl, *_ = np.linalg.lstsq(a * sw, q * sw, rcond=None)
+        ctrl = _weighted_lstsq(a, q, w, degree)
         res = np.linalg.norm(a @ ctrl - q, axis=1)
         if not robust:
             break
@@ -164,6 +314,7 @@ def fit_centerline(
     sample_step: float = 0.05,
     weights: np.ndarray | None = None,
     meta: dict | None = None,
+    max_length: float | None = None,
 ) -> tuple[Centerline, NurbsFit]:
     """The NURBS centreline of slice centres, resampled every ``sample_step`` metres.
 
@@ -184,19 +335,52 @@ def fit_centerline(
         Prior data weights of the centres.
     meta : dict, optional
         Extra metadata stored in the centreline.
+    max_length : float, optional
+        Longest curve the cloud can hold, metres, e.g. from
+        :func:`tunneldef.outliers.robust_extent` (``2 * extent.diagonal`` allows a 90 degree
+        bend with room to spare). The station span, the path through the centres and the
+        curve may not exceed it. Default: no bound but the centres' own path.
 
     Returns
     -------
     centerline : Centerline
     fit : NurbsFit
+
+    Raises
+    ------
+    ImplausibleExtentError
+        If the stations span, or the fitted curve is, longer than ``LENGTH_FACTOR`` times the
+        path through the centres plus ``LENGTH_MARGIN`` metres (a stray point, a wrong unit),
+        or any of them exceeds ``max_length``.
+
+    Notes
+    -----
+    The curve is evaluated at one parameter per ``sample_step / 2`` metres of station span
+    (the parameter is chord length, so about every ``sample_step / 2`` metres of arc; at most
+    ``MAX_EVAL_POINTS`` times) and then resampled every ``sample_step`` metres. Both the span
+    and the curve's arc length are checked against the path through the centres first, so the
+    work is bounded by the data.
     """
     q = np.asarray(centres, dtype=np.float64)
     if params is None:
         params = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
+    if not sample_step > 0 or not ctrl_spacing > 0:
+        raise ValueError("sample_step and ctrl_spacing must be positive")
+    params = np.asarray(params, dtype=np.float64)
+    path = _path_length(q)
     span = float(params[-1] - params[0])
+    check_curve_length(span, path, "the span of the slice stations")
+    _check_max_length(
+        {"the span of the slice stations": span, "the centres' path": path}, max_length
+    )
     n_ctrl = int(round(span / ctrl_spacing)) + degree
     fit = fit_nurbs(q, params=params, degree=degree, n_ctrl=min(n_ctrl, len(q)), weights=weights)
-    n_eval = max(int(np.ceil(span / (sample_step / 2))) + 1, 2)
+    length = fit.arc_length()
+    check_curve_length(length, path, "the fitted centreline")
+    _check_max_length({"the fitted centreline": length}, max_length)
+    # as many parameters as half-steps along the stations (both checked against the data):
+    # the parameter is chord length, so that is about one evaluation per sample_step / 2 of arc
+    n_eval = int(np.clip(np.ceil(span / (sample_step / 2)) + 1, 2, MAX_EVAL_POINTS))
     pts = fit.evaluate(np.linspace(0.0, 1.0, n_eval))
     info = {
         "method": "nurbs_least_squares",
@@ -206,6 +390,7 @@ def fit_centerline(
         "ctrl_weights": fit.weights.tolist(),
         "centre_weights": fit.data_weights.tolist(),
         "centre_residual_rms_m": float(np.sqrt(np.mean(fit.residuals**2))),
+        "eval_step_m": length / (n_eval - 1),
     }
     info.update(meta or {})
     return _from_vertices(pts, q, sample_step, info), fit
@@ -232,7 +417,11 @@ def fit_cubic_bspline(
     if params is None:
         params = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
     t = np.asarray(params, dtype=np.float64)
+    path = _path_length(q)
+    check_curve_length(float(t[-1] - t[0]), path, "the span of the slice stations")
     spline = make_interp_spline(t, q, k=min(3, len(q) - 1), axis=0)
-    n_eval = max(int(np.ceil((t[-1] - t[0]) / (sample_step / 2))) + 1, 2)
+    length = _path_length(spline(np.linspace(t[0], t[-1], max(32 * len(q), 1024))))
+    check_curve_length(length, path, "the cubic B-spline")
+    n_eval = int(np.clip(np.ceil((t[-1] - t[0]) / (sample_step / 2)) + 1, 2, MAX_EVAL_POINTS))
     pts = spline(np.linspace(t[0], t[-1], n_eval))
     return _from_vertices(pts, q, sample_step, {"method": "cubic_bspline_interpolation"})

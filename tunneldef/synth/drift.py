@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from ..centerline.curve import Centerline
+from ..curve import Centerline
 
 __all__ = ["DriftWalk", "random_drift"]
 

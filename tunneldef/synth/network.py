@@ -35,11 +35,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..centerline.curve import Centerline, Projection
 from ..cloud import Cloud
+from ..config import check_positive
+from ..curve import Centerline, Projection
 from ..errors import ConfigError
 from ..io import write as write_cloud
-from ..progress import ProgressCallback, report, timed_stage
+from ..progress import ProgressCallback, notify, timed_stage
 from .design import (
     _C_OUTLIER,
     _C_SHELL,
@@ -53,7 +54,6 @@ from .design import (
     TunnelSpec,
     _check_deformations,
     _patch_centre,
-    _positive,
     section_outline,
 )
 from .drift import DriftWalk, random_drift
@@ -142,7 +142,7 @@ class EdgeSpec:
         object.__setattr__(self, "faces", (bool(self.faces[0]), bool(self.faces[1])))
         if not isinstance(self.section, SectionSpec):
             raise ConfigError(f"edge {self.name!r}: section must be a SectionSpec")
-        _positive("bend_radius", self.bend_radius)
+        check_positive("bend_radius", self.bend_radius)
         if self.conveyor_side not in ("left", "right"):
             raise ConfigError(f"edge {self.name!r}: conveyor_side must be 'left' or 'right'")
 
@@ -321,8 +321,8 @@ class NetworkPairSpec:
         for d in self.deformations:
             if not isinstance(d, BranchDeformation):
                 raise ConfigError(f"deformations must be BranchDeformation objects, got {d!r}")
-        _positive("density", self.density, "points per m^2")
-        _positive("drift_step", self.drift_step)
+        check_positive("density", self.density, unit="points per m^2")
+        check_positive("drift_step", self.drift_step)
         for name in ("noise_sigma", "drift", "stray_distance"):
             val = getattr(self, name)
             if not np.isfinite(val) or val < 0:
@@ -1118,12 +1118,12 @@ def make_network_pair(
     openings = _openings(branches)
     cov_ref = _resolve(spec.ref_coverage or _auto_coverage(branches), branches)
     cov_cmp = _resolve(spec.cmp_coverage or _auto_coverage(branches), branches)
-    report(progress, "synthetic network", 0.0)
+    notify(progress, "synthetic network", 0.0)
     with timed_stage(log, "synthetic network reference epoch"):
         ref_xyz, ref_truth, ref_int = _epoch(
             branches, openings, scenes, spec, cov_ref, (), g_ref, g_dref, g_sref
         )
-    report(progress, "synthetic network", 0.5)
+    notify(progress, "synthetic network", 0.5)
     with timed_stage(log, "synthetic network compared epoch"):
         cmp_seen, cmp_truth, cmp_int = _epoch(
             branches, openings, scenes, spec, cov_cmp, spec.deformations, g_cmp, g_dcmp, g_scmp
@@ -1157,7 +1157,7 @@ def make_network_pair(
         tilt_deg=float(spec.tilt_deg),
         tilt_axis=tilt_axis,
     )
-    report(progress, "synthetic network", 1.0)
+    notify(progress, "synthetic network", 1.0)
     log.debug("synthetic network pair: %d reference, %d compared points", len(ref), len(cmp))
     return NetworkPair(ref, cmp, truth, spec)
 
