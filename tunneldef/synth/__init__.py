@@ -67,6 +67,19 @@ from .design import (
     _check_deformations,
     section_outline,
 )
+from .network import (
+    BranchDeformation,
+    EdgeSpec,
+    JunctionSpec,
+    NetworkPair,
+    NetworkPairSpec,
+    NetworkSpec,
+    Stretch,
+    make_network_pair,
+    network_250m,
+    network_250m_pair,
+    write_network_pair,
+)
 from .sampling import _sample_epoch
 from .scene import _Axis, _draw_heaps, _make_scene
 
@@ -92,6 +105,17 @@ __all__ = [
     "SURFACE_RIGHT",
     "SURFACE_FLOOR",
     "SURFACE_NONE",
+    "EdgeSpec",
+    "JunctionSpec",
+    "NetworkSpec",
+    "BranchDeformation",
+    "Stretch",
+    "NetworkPairSpec",
+    "NetworkPair",
+    "make_network_pair",
+    "write_network_pair",
+    "network_250m",
+    "network_250m_pair",
 ]
 
 log = logging.getLogger(__name__)

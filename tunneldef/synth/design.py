@@ -16,7 +16,7 @@ SURFACE_ROOF, SURFACE_LEFT, SURFACE_RIGHT, SURFACE_FLOOR, SURFACE_NONE = (
     ROOF, LEFT_WALL, RIGHT_WALL, FLOOR, NO_SURFACE
 )
 
-_SECTION_KINDS = ("rectangle", "arch", "trapezoid")
+_SECTION_KINDS = ("rectangle", "arch", "trapezoid", "horseshoe")
 _DEFORMATION_KINDS = ("roof_sag", "wall_bulge", "floor_heave")
 _SIDES = ("left", "right")
 
@@ -31,11 +31,13 @@ class SectionSpec:
 
     Parameters
     ----------
-    kind : {"rectangle", "arch", "trapezoid"}
+    kind : {"rectangle", "arch", "trapezoid", "horseshoe"}
         Rectangle (paper §4); arch = vertical walls and a circular roof; trapezoid = inclined
-        walls, wider at the floor.
+        walls, wider at the floor; horseshoe = a semicircular roof over curved walls (arcs of
+        radius ``width``, centred on the far side of the springing line) and a flat floor.
     width : float
-        Floor width, m (paper §4: 5.8 m).
+        Floor width, m (paper §4: 5.8 m); horseshoe: the span at the springing line (the floor
+        is narrower), and ``height`` must stay below ``(1 + sqrt(3)) * width / 2``.
     height : float
         Floor to roof (or crown) height, m (paper §4: 2.86 m).
     arch_rise : float or None
@@ -70,6 +72,13 @@ class SectionSpec:
                 raise ConfigError(
                     f"top_width {self.top_width} m exceeds the floor width {self.width} m"
                 )
+        if self.kind == "horseshoe" and not (
+            self.width / 2 < self.height < 0.95 * (1 + np.sqrt(3)) * self.width / 2
+        ):
+            raise ConfigError(
+                f"a horseshoe section needs width/2 < height < 1.3 x width, got "
+                f"{self.width} x {self.height} m"
+            )
 
     @property
     def rise(self) -> float:
@@ -356,10 +365,13 @@ class Outline:
                 fu, fv = cu + r * np.cos(a), cv + r * np.sin(a)
                 nu, nv = -np.cos(a), -np.sin(a)
             d = np.hypot(u - fu, v - fv)
-            better = d < best
-            best = np.where(better, d, best)
             inside = (u - fu) * nu + (v - fv) * nv > 0
-            sign = np.where(better, np.where(inside, -1.0, 1.0), sign)
+            # nearest to a corner shared with an earlier segment (a tie): inside only if on
+            # the inner side of both (else obtuse corners, e.g. a trapezoid's, flip the sign)
+            tie = np.abs(d - best) <= 1e-9
+            better = (d < best) & ~tie
+            best = np.where(better, d, best)
+            sign = np.where(better, np.where(inside, -1.0, 1.0), np.where(tie & ~inside, 1.0, sign))
         return sign * best
 
     def half_width(self, v: np.ndarray | float) -> np.ndarray:
@@ -395,6 +407,17 @@ def section_outline(section: SectionSpec) -> Outline:
             ("line", (w2, -h2), (t2, h2), SURFACE_LEFT),
             ("line", (t2, h2), (-t2, h2), SURFACE_ROOF),
             ("line", (-t2, h2), (-w2, -h2), SURFACE_RIGHT),
+        ]
+    elif section.kind == "horseshoe":
+        r = w2  # roof radius; the walls are arcs of radius 2 r about the opposite springing
+        vs = h2 - r
+        b = float(np.arcsin((h2 + vs) / (2 * r)))  # wall arc angle from springing to floor
+        uf = 2 * r * np.cos(b) - r  # half floor width
+        segs = [
+            ("line", (-uf, -h2), (uf, -h2), SURFACE_FLOOR),
+            ("arc", (-r, vs), 2 * r, -b, 0.0, SURFACE_LEFT),
+            ("arc", (0.0, vs), r, 0.0, np.pi, SURFACE_ROOF),
+            ("arc", (r, vs), 2 * r, np.pi, np.pi + b, SURFACE_RIGHT),
         ]
     else:
         f = section.rise
