@@ -17,6 +17,7 @@ __all__ = [
     "EpochMismatchError",
     "ConfigError",
     "MissingFileError",
+    "NetworkError",
 ]
 
 
@@ -54,3 +55,8 @@ class ConfigError(TunnelDefError):
 
 class MissingFileError(TunnelDefError):
     """An input file does not exist or is not a regular file."""
+
+
+class NetworkError(NotATunnelError):
+    """A drift network whose centrelines the method cannot vouch for (drifts above one
+    another, an extent too large for the plan grid, a branch without tunnel sections)."""
