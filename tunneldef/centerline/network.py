@@ -260,36 +260,40 @@ def _fit_edge(records: list[SliceRecord], c: CenterlineConfig, name: str) -> Cen
 def _passes(
     p: np.ndarray,
     e: _Edge,
+    axis: Centerline,
     zones: list[tuple[float, float]],
     nodes: list[np.ndarray],
     sl: SlicingConfig,
     c: CenterlineConfig,
     name: str,
+    *,
+    quick: bool = False,
 ) -> tuple[Centerline, list[SliceRecord]]:
     """Slice, fit and re-slice one edge along its own curve until it stops moving.
 
-    The first pass (slices a metre apart) only straightens the skeleton's axis; the result is
-    always that of a pass at the full slice step. A pass that fits worse than the one before
-    (fewer than 80 % of its good slices, or none) ends the passes and the one before stands.
+    ``quick``: one pass only (slices a metre apart on edges of 20 m or more), which straightens
+    the skeleton's axis so that the junction nodes can be placed. Otherwise the passes run at
+    the full slice step from ``axis``; a pass that fits worse than the one before (fewer than
+    80 % of its good slices, or none) ends them and the one before stands. Zones are kept
+    centred on the nodes' chainages on the current axis.
     """
-    coarse = dataclasses.replace(sl, step=max(sl.step, 1.0))
-    axis, leans, zones0 = e.axis, None, list(zones)
+    step = dataclasses.replace(sl, step=max(sl.step, 1.0)) if quick and e.axis.length >= 20.0 \
+        else sl
+    leans = None
     best: tuple[Centerline, list[SliceRecord], int] | None = None
     prev: Centerline | None = None
-    first = 0 if e.axis.length >= 20.0 else 1  # short edges: no coarse pass
-    for it in range(first, 1 + max(c.max_iterations, 1)):
-        records, leans = _slice_edge(p, axis, zones, e.tube, coarse if it == 0 else sl, c,
-                                     leans)
+    for _ in range(1 if quick else max(c.max_iterations, 1)):
+        at = [float(axis.project(v[None]).chainage[0]) for v in nodes]
+        zones = [(s - (b - a) / 2, s + (b - a) / 2) for s, (a, b) in zip(at, zones, strict=True)]
+        records, leans = _slice_edge(p, axis, zones, e.tube, step, c, leans)
         n_ok = sum(r.ok for r in records)
         try:
             curve = _fit_edge(records, c, name)
         except NetworkError:
-            if it == 0:
-                continue  # too few good slices a metre apart: go on at the full step
             if best is None and axis is not e.axis:
-                # a pass along the coarse curve failed: once more along the skeleton's axis
-                axis, zones = e.axis, zones0
-                records, leans = _slice_edge(p, axis, zones, e.tube, sl, c, leans)
+                # a pass along a fitted curve failed: once more along the skeleton's axis
+                axis = e.axis
+                records, leans = _slice_edge(p, axis, zones, e.tube, step, c, leans)
                 curve = _fit_edge(records, c, name)
                 best = (curve, records, sum(r.ok for r in records))
             if best is None:
@@ -297,19 +301,37 @@ def _passes(
             break
         if best is not None and n_ok < 0.8 * best[2]:
             break
-        if it > 0:
-            best = (curve, records, n_ok)
+        best = (curve, records, n_ok)
         if prev is not None:
             q = prev.project(curve.points)
             d = q.distance[q.inside]
             if d.size and float(np.percentile(d, 95)) < c.converge_tol:
                 break
-        # the zones move with the curve: centre them on the nodes' chainages on it
-        at = [float(curve.project(v[None]).chainage[0]) for v in nodes]
-        zones = [(s - (b - a) / 2, s + (b - a) / 2) for s, (a, b) in zip(at, zones, strict=True)]
         prev = axis = curve
     assert best is not None
     return best[0], best[1]
+
+
+def _place_nodes(
+    edges: list[_Edge], curves: list[Centerline], members: dict[int, list[int]],
+    node_xyz: dict[int, np.ndarray],
+) -> None:
+    """Junction nodes on fitted curves: where the end tangent of an edge that ends there meets
+    the edge passing through (else the node's foot point on the first member)."""
+    for v, ks in members.items():
+        through = [k for k in ks if v in edges[k].through]
+        host = curves[through[0] if through else ks[0]]
+        ending = [k for k in ks if v in edges[k].nodes and k not in through]
+        # a meeting point far from the skeleton's node means a poorly determined end tangent
+        # (a short branch with few sections): the node's foot point then stands
+        reach = 1.5 * edges[through[0] if through else ks[0]].half_width
+        meets = [_meet(curves[k], edges[k].nodes.index(v), host, node_xyz[v]) for k in ending]
+        meets = [m for m in meets if np.linalg.norm(m[:2] - node_xyz[v][:2]) <= reach]
+        if through and meets:
+            node_xyz[v] = np.mean(meets, axis=0)
+        else:
+            s = host.project(node_xyz[v][None]).chainage
+            node_xyz[v] = host.point_at(np.clip(s, 0.0, host.length))[0]
 
 
 def _zones(
@@ -450,25 +472,23 @@ def extract_network(
         node_xyz[v] = np.array([plan[0], plan[1], float(ax.point_at(s.chainage)[0, 2])])
     axes = [e.axis for e in edges]
     zones = _zones(edges, node_xyz, axes, members, nc.zone_margin)
+    at = [[v for v, ks in members.items() if k in ks] for k in range(len(edges))]
+    names = [f"edge {k} ({e.axis.length:.1f} m from {np.round(e.axis.points[0], 1).tolist()})"
+             for k, e in enumerate(edges)]
+    # round 1: straighten every skeleton axis, then place the junctions on those curves
+    first = []
     for k, e in enumerate(edges):
-        notify(progress, "network centrelines", 0.1 + 0.8 * k / len(edges))
-        name = f"edge {k} ({e.axis.length:.1f} m from {np.round(e.axis.points[0], 1).tolist()})"
-        at = [v for v, ks in members.items() if k in ks]
-        e.curve, e.records = _passes(pts[e.index], e, zones[k], [node_xyz[v] for v in at],
-                                     sl, c, name)
-    # junction nodes on the fitted curves: where the end tangent of an edge that ends there
-    # meets the edge passing through (else the skeleton's node, on the first member)
-    for v, ks in members.items():
-        through = [k for k in ks if v in edges[k].through]
-        host = edges[through[0] if through else ks[0]].curve
-        ending = [k for k in ks if v in edges[k].nodes and k not in through]
-        if through and ending:
-            meets = [_meet(edges[k].curve, edges[k].nodes.index(v), host, node_xyz[v])
-                     for k in ending]
-            node_xyz[v] = np.mean(meets, axis=0)
-        else:
-            s = host.project(node_xyz[v][None]).chainage
-            node_xyz[v] = host.point_at(np.clip(s, 0.0, host.length))[0]
+        notify(progress, "network centrelines", 0.1 + 0.3 * k / len(edges))
+        first.append(_passes(pts[e.index], e, e.axis, zones[k], [node_xyz[v] for v in at[k]],
+                             sl, c, names[k], quick=True)[0])
+    _place_nodes(edges, first, members, node_xyz)
+    zones = _zones(edges, node_xyz, first, members, nc.zone_margin)
+    # round 2: the paper's passes along those curves, junction zones at the placed nodes
+    for k, e in enumerate(edges):
+        notify(progress, "network centrelines", 0.4 + 0.5 * k / len(edges))
+        e.curve, e.records = _passes(pts[e.index], e, first[k], zones[k],
+                                     [node_xyz[v] for v in at[k]], sl, c, names[k])
+    _place_nodes(edges, [e.curve for e in edges], members, node_xyz)
     # extend edges that end at a junction to its node
     final: list[Centerline] = []
     for e in edges:
@@ -482,7 +502,10 @@ def extract_network(
         for r in e.records:
             r.station += shift
         final.append(cv)
-    zones = _zones(edges, node_xyz, final, members, nc.zone_margin)
+    half = [[(b - a) / 2 for a, b in z] for z in zones]
+    zones = [[(s - h, s + h) for s, h in zip(
+        [float(final[k].project(node_xyz[v][None]).chainage[0]) for v in at[k]], half[k],
+        strict=True)] for k in range(len(edges))]
     jid = {v: i for i, v in enumerate(sorted(members))}
     out_edges = []
     for k, (e, cv) in enumerate(zip(edges, final, strict=True)):

@@ -1,0 +1,155 @@
+"""Drift networks: the centreline graph (edges, junctions, point assignment) on a synthetic
+network with truth per branch and on the real junction scan."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tunneldef.centerline.network import JUNCTION, extract_network
+from tunneldef.centerline.skeleton import plan_grid
+from tunneldef.errors import NetworkError, TunnelDefError
+from tunneldef.network import NO_BRANCH
+from tunneldef.synth import SectionSpec
+from tunneldef.synth.network import (
+    EdgeSpec,
+    JunctionSpec,
+    NetworkSpec,
+    make_network_pair,
+)
+
+CHAMBER = Path(
+    os.environ.get("TUNNELDEF_SHARED_DATA", Path(__file__).resolve().parents[1].parent
+                   / "shared" / "data")
+) / "freiberg_mine_chamber_tls_0005.laz"
+
+
+def small_network() -> NetworkSpec:
+    """A 40 m main drift, a 24 m cross-cut through it at x = 12 m (a crossing) and a 12 m dead
+    end to the left at x = 28 m."""
+    edges = (
+        EdgeSpec("main", ((0.0, 0.0, 0.0), (40.0, 0.0, 0.0)), SectionSpec("rectangle", 4.0, 3.0)),
+        EdgeSpec("xc", ((12.0, -12.0, 0.0), (12.0, 12.0, 0.0)), SectionSpec("arch", 3.6, 3.0)),
+        EdgeSpec("dead-end", ((28.0, 0.0, 0.0), (28.0, 12.0, 0.0)),
+                 SectionSpec("rectangle", 3.5, 3.0), faces=(False, True)),
+    )
+    junctions = (JunctionSpec("crossing", (12.0, 0.0, 0.0), (0, 1)),
+                 JunctionSpec("tee", (28.0, 0.0, 0.0), (0, 2)))
+    return NetworkSpec(edges, junctions, name="small")
+
+
+@pytest.fixture(scope="module")
+def pair():  # noqa: ANN201
+    return make_network_pair(network=small_network(), deformations=(), ref_coverage=None,
+                             cmp_coverage=None, density=150.0, drift=0.0, equipment=False,
+                             seed=3)
+
+
+@pytest.fixture(scope="module")
+def result(pair):  # noqa: ANN001, ANN201
+    return extract_network(pair.ref.xyz)
+
+
+def _truth_axis_errors(net, cl, juncs, hw):  # noqa: ANN001, ANN202
+    """Distances of a truth axis (every 0.25 m, 1 m inside its ends, 2 m beyond the other
+    drifts' walls at junctions) to the network's curves."""
+    s = np.arange(1.0, cl.length - 1.0, 0.25)
+    p = cl.point_at(s)
+    d = np.min(np.linalg.norm(p[:, None, :2] - juncs[None, :, :2], axis=2), axis=1)
+    p = p[d > hw + 2.0]
+    pr = net.project(p)
+    return np.where(pr.inside, pr.distance, np.inf)
+
+
+def test_every_branch_found_and_centred(pair, result) -> None:  # noqa: ANN001
+    net = result.network
+    assert len(net.edges) == 3
+    assert len(net.junctions) == 2
+    # the main drift passes through both junctions as one edge; the cross-cut passes through
+    assert sorted(len(j.edges) for j in net.junctions) == [2, 2]
+    juncs = pair.truth.junction_positions
+    for b, cl in enumerate(pair.truth.centerlines):
+        err = _truth_axis_errors(net, cl, juncs, 2.0)
+        assert np.all(np.isfinite(err)), f"branch {b} not covered"
+        assert np.percentile(err, 95) <= 0.03, (b, np.percentile(err, 95))
+    # junction nodes where the drifts cross
+    pos = np.array([j.position for j in net.junctions])
+    d = np.linalg.norm(pos[:, None, :2] - juncs[None, :, :2], axis=2).min(axis=0)
+    assert np.all(d < 0.3), d
+
+
+def test_junction_slices_are_flagged_not_fitted(result) -> None:  # noqa: ANN001
+    for e in result.network.edges:
+        flagged = [r for r in e.slices if r.reason == JUNCTION]
+        assert flagged, e.id
+        assert not any(r.ok for r in flagged)
+        assert e.zones
+        ok = np.array([r.chainage for r in e.slices if r.ok])
+        assert not np.any(e.in_zone(ok))
+
+
+def test_points_are_assigned_to_their_branch(pair, result) -> None:  # noqa: ANN001
+    net = result.network
+    truth = pair.truth.ref
+    pr = net.project(pair.ref.xyz, max_distance=5.0)
+    m = ~truth.stray & (truth.label == 0)
+    # map network edges to truth branches by majority, then compare away from junctions
+    mapping = {}
+    for e in net.edges:
+        sel = m & (pr.branch == e.id)
+        mapping[e.id] = int(np.bincount(truth.branch[sel]).argmax())
+    assert sorted(mapping.values()) == [0, 1, 2]
+    got = np.array([mapping.get(int(b), -1) for b in pr.branch[m]])
+    away = ~pr.junction[m]
+    assert np.mean(got[away] == truth.branch[m][away]) > 0.995
+    # the far stray point belongs to no edge
+    assert np.all(pr.branch[truth.stray] == NO_BRANCH)
+
+
+def test_graph_json_ready(result) -> None:  # noqa: ANN001
+    d = json.loads(json.dumps(result.network.to_dict(curves=False)))
+    assert {"nodes", "edges"} <= set(d)
+    assert all(len(n["edges"]) == len(n["chainages_m"]) for n in d["nodes"])
+
+
+def test_a_far_stray_point_creates_no_edge_and_no_huge_grid() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.uniform([0, -2, -1.5], [30, 2, 1.5], size=(20000, 3))
+    x = np.vstack([x, [[1e6, 5e5, 10.0]]])
+    g = plan_grid(x)
+    assert not g.keep[-1] and g.keep[:-1].all()
+    assert g.footprint.size < 200 * 30 / 0.2**2
+
+
+def test_drifts_above_one_another_are_refused() -> None:
+    rng = np.random.default_rng(1)
+    lower = rng.uniform([0, -2, -1.5], [30, 2, 1.5], size=(30000, 3))
+    upper = rng.uniform([10, -2, 8.5], [20, 2, 11.5], size=(10000, 3))
+    with pytest.raises(NetworkError, match="above one another"):
+        plan_grid(np.vstack([lower, upper]))
+    assert issubclass(NetworkError, TunnelDefError)
+
+
+@pytest.mark.skipif(not CHAMBER.is_file(), reason="real scan not present")
+def test_real_junction_scan() -> None:
+    from tunneldef.io import read
+
+    x = read(CHAMBER).xyz
+    x = x[np.random.default_rng(0).random(len(x)) < 0.5]
+    net = extract_network(x).network
+    # a drift about 13 m along y through the junction, a branch of about 5.5 m leaving it
+    assert len(net.edges) == 2 and len(net.junctions) == 1
+    main, branch = net.edges
+    d = main.centerline.points[-1] - main.centerline.points[0]
+    assert 10.5 < main.length < 14.5 and abs(d[1]) > 10 * abs(d[2])
+    assert 3.5 < branch.length < 7.0
+    j = net.junctions[0]
+    assert np.linalg.norm(j.position[:2] - [0.1, -0.5]) < 0.6
+    t = branch.centerline.points[-1] - branch.centerline.points[0]
+    cos = abs(t[:2] @ d[:2]) / np.linalg.norm(t[:2]) / np.linalg.norm(d[:2])
+    angle = np.degrees(np.arccos(cos))
+    assert 50 < angle < 80
