@@ -39,7 +39,7 @@ from ..errors import NetworkError, NotATunnelError
 from ..network import CenterlineNetwork, Junction, NetworkEdge
 from ..progress import ProgressCallback, notify
 from .extract import SliceRecord, analyse_slice
-from .fit import fit_centerline, fit_line
+from .fit import fit_centerline
 from .skeleton import PlanGrid, SkeletonGraph, plan_grid, skeleton_graph
 from .slicing import slice_along_axis
 from .walls import estimate_wall_leans
@@ -220,12 +220,24 @@ def _slice_edge(
     return records, leans
 
 
-def _fit_edge(records: list[SliceRecord], c: CenterlineConfig, name: str) -> Centerline:
+def _fit_edge(
+    records: list[SliceRecord], c: CenterlineConfig, name: str, axis: Centerline
+) -> Centerline:
     ok = [r for r in records if r.ok]
     if MIN_LINE_SLICES <= len(ok) < max(c.min_slices, c.degree + 1):
-        # a short branch (a few metres beyond its junction): a straight line, not a cubic
-        cl = fit_line(np.array([r.centre for r in ok]), sample_step=c.sample_step)
-        cl.meta.update({"n_slices": len(records), "n_used": len(ok), "short_branch": True})
+        # a short branch (a few metres beyond its junction), too few centres for a curve or
+        # even a direction: the axis it was sliced along, moved onto the centres (median
+        # lateral and vertical offset)
+        st = np.array([r.station for r in ok])
+        pr = axis.project(np.array([r.centre for r in ok]))
+        s = np.arange(st.min(), st.max() + c.sample_step / 2, c.sample_step)
+        _, lat, ver = axis.frame_at(s)
+        pts = (axis.point_at(s) + float(np.median(pr.lateral)) * lat
+               + float(np.median(pr.vertical)) * ver)
+        cl = Centerline.from_polyline(pts, step=c.sample_step,
+                                      centres=np.array([r.centre for r in ok]))
+        cl.meta.update({"method": "axis_offset", "n_slices": len(records), "n_used": len(ok),
+                        "short_branch": True})
         for r in ok:
             r.weight = 1.0
         return cl
@@ -288,13 +300,13 @@ def _passes(
         records, leans = _slice_edge(p, axis, zones, e.tube, step, c, leans)
         n_ok = sum(r.ok for r in records)
         try:
-            curve = _fit_edge(records, c, name)
+            curve = _fit_edge(records, c, name, axis)
         except NetworkError:
             if best is None and axis is not e.axis:
                 # a pass along a fitted curve failed: once more along the skeleton's axis
                 axis = e.axis
                 records, leans = _slice_edge(p, axis, zones, e.tube, step, c, leans)
-                curve = _fit_edge(records, c, name)
+                curve = _fit_edge(records, c, name, axis)
                 best = (curve, records, sum(r.ok for r in records))
             if best is None:
                 raise
