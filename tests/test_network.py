@@ -153,3 +153,33 @@ def test_real_junction_scan() -> None:
     cos = abs(t[:2] @ d[:2]) / np.linalg.norm(t[:2]) / np.linalg.norm(d[:2])
     angle = np.degrees(np.arccos(cos))
     assert 50 < angle < 80
+
+
+@pytest.mark.slow
+def test_detect_network_measures_each_branch() -> None:
+    from tunneldef.pipeline import detect_network
+    from tunneldef.synth import DeformationSpec
+    from tunneldef.synth.network import BranchDeformation
+    from tunneldef.transforms import apply_transform
+
+    defs = (BranchDeformation(1, DeformationSpec("wall_bulge", 19.0, 3.0, 1.5, 0.06, "left")),)
+    p = make_network_pair(network=small_network(), deformations=defs, ref_coverage=None,
+                          cmp_coverage=None, density=100.0, drift=0.0, equipment=False,
+                          seed=4, yaw_deg=70.0)
+    r = detect_network(p.ref, p.cmp)
+    err = np.linalg.norm(apply_transform(r.transform, p.cmp.xyz)
+                         - apply_transform(p.truth.transform, p.cmp.xyz), axis=1)
+    assert np.mean(err) < 0.005
+    branch = r.cloud.fields["branch"]
+    assert branch.dtype == np.uint16
+    d = r.cloud.fields["deformation"]
+    core = (p.truth.cmp.branch == 1) & (p.truth.cmp.displacement < -0.04) & np.isfinite(d)
+    assert core.sum() > 20
+    # measured on the cross-cut's edge, inward, near the truth
+    assert len(np.unique(branch[core])) == 1
+    assert np.median(d[core]) == pytest.approx(np.median(p.truth.cmp.displacement[core]),
+                                               abs=0.015)
+    s = json.loads(json.dumps(r.summary(), default=float))
+    assert {b["branch"] for b in s["branches"]} == {0, 1, 2}
+    assert all(b["common_length_m"] > 0.6 * b["length_m"] for b in s["branches"])
+    assert all("branch" in x for x in s["sections"])

@@ -232,6 +232,11 @@ class NetworkConfig:
                                         "on are one edge through the junction, deg")
     zone_margin: float = _p(0.5, "ours: junction zones reach this far beyond the other "
                                  "drift's wall, m")
+    drift_correction: bool = _p(True, "ours: after the rigid registration of two networks, "
+                                      "a piecewise-rigid correction of SLAM drift along each "
+                                      "edge, used only when it lowers the residual by more "
+                                      "than 0.5 mm RMS; false switches it off")
+    drift_block: float = _p(20.0, "ours: length of the blocks of the drift correction, m")
 
 
 @dataclass(frozen=True)

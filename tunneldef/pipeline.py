@@ -303,6 +303,10 @@ class NetworkResult:
         Per-section statistics and danger zones, each with ``branch`` and ``branch_name``.
     common_length : dict of int -> float
         Per reference edge, the length both epochs cover, metres.
+    drift_correction : dict
+        Whether the piecewise-rigid SLAM-drift correction was used, its residuals and blocks
+        (:func:`~tunneldef.registration.network.correct_drift`); the compared points in
+        ``cloud`` carry it, ``transform`` is the rigid part only.
     """
 
     cloud: Cloud
@@ -316,6 +320,7 @@ class NetworkResult:
     common_length: dict[int, float]
     config: Config
     timings: dict[str, float] = field(default_factory=dict)
+    drift_correction: dict[str, Any] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
         """JSON-serialisable summary: transform, both networks, per-edge names, lengths and
@@ -337,6 +342,7 @@ class NetworkResult:
             "software": {"name": "tunneldef", "version": __version__},
             "transform_compared_to_reference": np.asarray(self.transform).tolist(),
             "registration": self.registration.to_dict(),
+            "drift_correction": self.drift_correction,
             "branches": edges,
             "danger_threshold_m": self.danger_threshold,
             "danger_zones": self.zones,
@@ -376,7 +382,7 @@ def detect_network(
         section_statistics,
     )
     from .network import NO_BRANCH
-    from .registration.network import common_lengths, register_networks
+    from .registration.network import common_lengths, correct_drift, register_networks
 
     config = config or Config()
     timings: dict[str, float] = {}
@@ -392,6 +398,11 @@ def detect_network(
     transform = np.asarray(reg.transform, dtype=np.float64)
     moved = cmp.transformed(transform)
     net = ref_net.network
+    drift: dict[str, Any] = {"used": False, "enabled": config.network.drift_correction}
+    if config.network.drift_correction:
+        xyz, drift = correct_drift(ref.xyz, moved.xyz, net, block=config.network.drift_block)
+        drift["enabled"] = True
+        moved = Cloud(xyz, moved.fields, moved.meta)
     timings["registration"] = time.perf_counter() - t
     t = time.perf_counter()
     reach = 2.0 * max(float(ref_net.grid.half_width.max()), 1.0)
@@ -450,4 +461,4 @@ def detect_network(
     timings["sections_and_danger"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
     return NetworkResult(moved, transform, reg, net, cmp_net.network.transformed(transform),
-                         sections, zones, threshold, common, config, timings)
+                         sections, zones, threshold, common, config, timings, drift)

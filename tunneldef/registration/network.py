@@ -30,7 +30,7 @@ from ..network import CenterlineNetwork
 from ..transforms import apply_transform
 from .baselines import icp_plane
 
-__all__ = ["NetworkRegistration", "register_networks", "common_lengths"]
+__all__ = ["NetworkRegistration", "register_networks", "common_lengths", "correct_drift"]
 
 
 @dataclass
@@ -220,3 +220,116 @@ def common_lengths(
                                       minlength=nb)[:nb])
         out[e.id] = float(np.sum((counts[0] >= min_points) & (counts[1] >= min_points)) * bin_m)
     return out
+
+
+def _plane_residual(ref_tree: cKDTree, normals: np.ndarray, ref_pts: np.ndarray,
+                    xyz: np.ndarray, trim: float) -> np.ndarray:
+    """Point-to-plane distance of ``xyz`` to the reference (NaN beyond ``trim``)."""
+    d, k = ref_tree.query(xyz, distance_upper_bound=trim)
+    out = np.full(len(xyz), np.nan)
+    m = np.isfinite(d)
+    out[m] = np.einsum("ij,ij->i", xyz[m] - ref_pts[k[m]], normals[k[m]])
+    return out
+
+
+def correct_drift(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    net: CenterlineNetwork,
+    *,
+    block: float = 20.0,
+    voxel: float = 0.1,
+    max_distance: float = 0.1,
+    min_gain: float = 0.0005,
+    sample: int = 40_000,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Piecewise-rigid correction of SLAM drift along each edge, after a rigid registration.
+
+    Along every reference edge, blocks ``block`` metres long (centred every ``block``, each
+    reaching half a block into its neighbours) of the compared points are registered onto the
+    reference by point-to-plane ICP with a tight match distance (``max_distance``: a local
+    change such as a sag, a bulge or a heave is a small part of a block's shell and outside
+    the match distance where it is large). The blocks' displacements are blended linearly along
+    the chainage between block centres, so the correction is continuous along each edge.
+
+    The correction is used only when it lowers the RMS point-to-plane residual of the compared
+    points (trimmed at ``max_distance``) by more than ``min_gain``; otherwise the points are
+    returned unchanged.
+
+    Parameters
+    ----------
+    ref_xyz, cmp_xyz : ndarray, shape (M, 3), (N, 3)
+        Reference and registered compared points, metres.
+    net : CenterlineNetwork
+        The reference network (the compared points are assigned to its edges).
+
+    Returns
+    -------
+    xyz : ndarray, shape (N, 3)
+        The corrected compared points (or ``cmp_xyz`` itself when not used).
+    info : dict
+        ``used``, residual RMS before and after (m), per edge the blocks' centres and their
+        displacement at the block centre (m).
+    """
+    import open3d as o3d
+
+    rng = np.random.default_rng(0)
+    ref_pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ref_xyz)).voxel_down_sample(
+        voxel / 2)
+    ref_pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
+    rp, rn = np.asarray(ref_pc.points), np.asarray(ref_pc.normals)
+    tree = cKDTree(rp)
+    pc = net.project(cmp_xyz, max_distance=10.0)
+    pr = net.project(rp, max_distance=10.0)
+    disp = np.zeros_like(cmp_xyz)
+    wsum = np.zeros(len(cmp_xyz))
+    info: dict[str, Any] = {"block_m": block, "edges": {}}
+    for e in net.edges:
+        mc = np.flatnonzero(pc.branch == e.id)
+        if len(mc) < 1000:
+            continue
+        n_blocks = max(int(round(e.length / block)), 1)
+        centres = (np.arange(n_blocks) + 0.5) * e.length / n_blocks
+        width = e.length / n_blocks
+        s = pc.chainage[mc]
+        rows = []
+        for c in centres:
+            sel = mc[np.abs(s - c) <= 0.75 * width]
+            rsel = (pr.branch == e.id) & (np.abs(pr.chainage - c) <= 0.75 * width + 1.0)
+            if len(sel) < 2000 or rsel.sum() < 2000:
+                rows.append(np.eye(4))
+                continue
+            pick = sel if len(sel) <= sample else rng.choice(sel, sample, replace=False)
+            t = icp_plane(rp[rsel], cmp_xyz[pick], np.eye(4), voxel=voxel,
+                          max_distance=max_distance, iterations=30)
+            rows.append(t)
+        # blend the blocks' displacements with hat functions on the block centres
+        for k, (c, t) in enumerate(zip(centres, rows, strict=True)):
+            up = np.clip((s - centres[k - 1]) / (c - centres[k - 1]), 0, 1) if k > 0 \
+                else np.ones_like(s)
+            down = np.clip((centres[k + 1] - s) / (centres[k + 1] - c), 0, 1) \
+                if k + 1 < len(centres) else np.ones_like(s)
+            w = np.where(s <= c, up, down)
+            m = w > 0
+            p = cmp_xyz[mc[m]]
+            disp[mc[m]] += w[m, None] * (apply_transform(t, p) - p)
+            wsum[mc[m]] += w[m]
+        info["edges"][str(e.id)] = {
+            "block_centres_m": centres.tolist(),
+            "block_shift_m": [float(np.linalg.norm(
+                apply_transform(t, e.centerline.point_at(c))[0] - e.centerline.point_at(c)[0]))
+                for c, t in zip(centres, rows, strict=True)],
+        }
+    ok = wsum > 0
+    out = cmp_xyz.copy()
+    out[ok] += disp[ok] / wsum[ok, None]
+    probe = rng.choice(len(cmp_xyz), min(len(cmp_xyz), 200_000), replace=False)
+    before = _plane_residual(tree, rn, rp, cmp_xyz[probe], max_distance)
+    after = _plane_residual(tree, rn, rp, out[probe], max_distance)
+    both = np.isfinite(before) & np.isfinite(after)
+    rb = float(np.sqrt(np.mean(before[both] ** 2))) if both.any() else np.nan
+    ra = float(np.sqrt(np.mean(after[both] ** 2))) if both.any() else np.nan
+    used = bool(np.isfinite(rb) and rb - ra > min_gain)
+    info.update({"used": used, "residual_rms_before_m": rb, "residual_rms_after_m": ra,
+                 "min_gain_m": min_gain})
+    return (out if used else cmp_xyz), info
