@@ -214,3 +214,21 @@ def test_drift_correction_lowers_the_residual_and_keeps_a_small_sag() -> None:
     # switched off: nothing moves
     off, info_off = correct_drift(p.ref.xyz, moved, rn, min_gain=np.inf)
     assert off is moved and not info_off["used"]
+
+
+@pytest.mark.slow
+def test_cli_centerline_network_writes_the_graph(pair, tmp_path) -> None:  # noqa: ANN001
+    from tunneldef.cli import main
+    from tunneldef.io import read, write
+
+    src = tmp_path / "ref.ply"
+    write(src, pair.ref)
+    assert main(["centerline", "--network", "--quiet", str(src), "-o",
+                 str(tmp_path / "net.json")]) == 0
+    graph = json.loads((tmp_path / "net.json").read_text())
+    assert len(graph["edges"]) == 3 and len(graph["nodes"]) == 2
+    assert all(len(e["centerline"]["points"]) > 10 for e in graph["edges"])
+    assert main(["centerline", "--network", "--quiet", str(src), "-o",
+                 str(tmp_path / "net.ply")]) == 0
+    curve = read(tmp_path / "net.ply")
+    assert set(np.unique(curve.fields["edge"])) == {0, 1, 2}

@@ -291,7 +291,14 @@ def cmd_detect(args: argparse.Namespace) -> int:
     log.info("reference %s: %s points; compared %s: %s points", ref_path.name, f"{len(ref):,}",
              cmp_path.name, f"{len(cmp):,}")
     progress = None if args.quiet else StageLogger(log)
-    result = detect(ref, cmp, config, progress=progress)
+    if getattr(args, "network", False):
+        from .pipeline import detect_network
+
+        if args.no_drift_correction:
+            config = config.replace(network={"drift_correction": False})
+        result = detect_network(ref, cmp, config, progress=progress)
+    else:
+        result = detect(ref, cmp, config, progress=progress)
     write(out, result.cloud)
     summary = result.summary()
     summary["inputs"] = {"reference": str(ref_path), "compared": str(cmp_path), "output": str(out)}
@@ -457,6 +464,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration",
                    choices=["centerline", "icp_point", "icp_plane", "gicp", "ndt"],
                    help="registration method (default: centerline)")
+    p.add_argument("--network", action="store_true",
+                   help="the epochs are drift networks: measure every point against its branch "
+                   "(adds the uint16 field 'branch'; sections and danger zones per branch)")
+    p.add_argument("--no-drift-correction", action="store_true",
+                   help="with --network: no piecewise-rigid SLAM-drift correction")
     p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("demo", parents=[common],
