@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tunneldef.centerline.network import JUNCTION, extract_network
-from tunneldef.centerline.skeleton import plan_grid
+from tunneldef.centerline.plan import plan_grid
 from tunneldef.errors import NetworkError, TunnelDefError
 from tunneldef.network import NO_BRANCH
 from tunneldef.synth import SectionSpec

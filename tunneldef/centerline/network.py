@@ -40,7 +40,8 @@ from ..network import CenterlineNetwork, Junction, NetworkEdge
 from ..progress import ProgressCallback, notify
 from .extract import SliceRecord, analyse_slice
 from .fit import fit_centerline
-from .skeleton import PlanGrid, SkeletonGraph, plan_grid, skeleton_graph
+from .plan import PlanGrid, plan_grid
+from .skeleton import SkeletonGraph, skeleton_graph
 from .slicing import slice_along_axis
 from .walls import estimate_wall_leans
 
