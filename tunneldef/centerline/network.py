@@ -294,7 +294,9 @@ def _passes(
         else sl
     leans = None
     best: tuple[Centerline, list[SliceRecord], int] | None = None
-    prev: Centerline | None = None
+    # the curve a full pass starts from counts as the previous one: a pass that moves it less
+    # than converge_tol is the last
+    prev: Centerline | None = None if quick else axis
     for _ in range(1 if quick else max(c.max_iterations, 1)):
         at = [float(axis.project(v[None]).chainage[0]) for v in nodes]
         zones = [(s - (b - a) / 2, s + (b - a) / 2) for s, (a, b) in zip(at, zones, strict=True)]
