@@ -134,6 +134,7 @@ def test_drifts_above_one_another_are_refused() -> None:
     assert issubclass(NetworkError, TunnelDefError)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not CHAMBER.is_file(), reason="real scan not present")
 def test_real_junction_scan() -> None:
     from tunneldef.io import read
