@@ -448,9 +448,11 @@ def detect_network(
                                  neighbours=dc.neighbours, peak_points=dc.peak_points)
         danger[mc] = np.asarray(flags, dtype=np.uint8)
         keyed = {"branch": e.id, "branch_name": e.name}
-        zones += [{**keyed, **z, "junction": bool(np.any(e.in_zone(
-            np.array([z["start"], z["end"]]))))}
-                  for z in zs]
+        # a zone at a junction (or beyond the edge's ends, inside another drift) is flagged:
+        # there the section is no tunnel section
+        zones += [{**keyed, **z, "junction": bool(
+            np.any(e.in_zone(np.array([z["start"], z["end"]])))
+            or z["start"] < 0.0 or z["end"] > e.length)} for z in zs]
         sections += [{**keyed, **s} for s in section_statistics(
             d, step=config.deformation.section_step,
             thickness=config.deformation.section_thickness)]
