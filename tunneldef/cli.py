@@ -167,6 +167,8 @@ def cmd_centerline(args: argparse.Namespace) -> int:
     config = _load_config(args)
     cloud = read(src, strict=args.strict)
     progress = None if args.quiet else StageLogger(log)
+    if args.network:
+        return _centerline_network(cloud, config, out, progress)
     result = extract_centerline(
         cloud.xyz, slicing=config.slicing, settings=config.centerline, progress=progress
     )
@@ -204,6 +206,45 @@ def _write_centerline(result: Any, out: Path) -> None:
         cl = result.centerline
         cloud = Cloud(cl.points, {"chainage": cl.chainage.astype(np.float32)})
         write(out, cloud)
+
+
+def _centerline_network(cloud: Any, config: Any, out: Path, progress: Any) -> int:
+    """``tunneldef centerline --network``: the graph of a drift network.
+
+    JSON: nodes (junctions) and edges (each with its curve) plus the slices; CSV: one row per
+    slice with its ``edge``; PLY/LAS/LAZ: the curves' samples with ``edge`` and ``chainage``.
+    """
+    import numpy as np
+
+    from .centerline.network import extract_network
+    from .cloud import Cloud
+    from .io import write
+
+    result = extract_network(cloud.xyz, slicing=config.slicing, settings=config.centerline,
+                             network=config.network, progress=progress)
+    net = result.network
+    suffix = out.suffix.lower()
+    if suffix == ".csv":
+        write_csv(out, result.table())
+    elif suffix == ".json":
+        write_text_atomic(out, to_json({**net.to_dict(), "slices": result.table()}))
+    else:
+        pts = np.concatenate([e.centerline.points for e in net.edges])
+        fields = {
+            "edge": np.concatenate([np.full(len(e.centerline.points), e.id, dtype=np.uint16)
+                                    for e in net.edges]),
+            "chainage": np.concatenate([e.centerline.chainage for e in net.edges]
+                                       ).astype(np.float32),
+            "junction": np.concatenate([e.in_zone(e.centerline.chainage) for e in net.edges]
+                                       ).astype(np.uint8),
+        }
+        write(out, Cloud(pts, fields))
+    for e in net.edges:
+        log.info("edge %d: %.2f m, %d slices (%d usable), junctions %s", e.id, e.length,
+                 len(e.slices), sum(r.ok for r in e.slices), [n for n in e.nodes if n >= 0])
+    log.info("network: %d edges, %d junctions, %.1f m -> %s", len(net.edges),
+             len(net.junctions), net.length, out)
+    return 0
 
 
 def cmd_register(args: argparse.Namespace) -> int:
@@ -250,7 +291,14 @@ def cmd_detect(args: argparse.Namespace) -> int:
     log.info("reference %s: %s points; compared %s: %s points", ref_path.name, f"{len(ref):,}",
              cmp_path.name, f"{len(cmp):,}")
     progress = None if args.quiet else StageLogger(log)
-    result = detect(ref, cmp, config, progress=progress)
+    if getattr(args, "network", False):
+        from .pipeline import detect_network
+
+        if args.no_drift_correction:
+            config = config.replace(network={"drift_correction": False})
+        result = detect_network(ref, cmp, config, progress=progress)
+    else:
+        result = detect(ref, cmp, config, progress=progress)
     write(out, result.cloud)
     summary = result.summary()
     summary["inputs"] = {"reference": str(ref_path), "compared": str(cmp_path), "output": str(out)}
@@ -376,6 +424,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True,
                    help="centerline.csv (slices), .json, or .ply/.las/.laz (curve points)")
     p.add_argument("--plots", metavar="DIR", help="write diagnostic figures into DIR")
+    p.add_argument("--network", action="store_true",
+                   help="a drift network: write the graph of edges and junctions (JSON: nodes "
+                   "and edges; CSV: slices with their edge; PLY/LAS/LAZ: curve points with an "
+                   "edge field)")
     p.set_defaults(func=cmd_centerline)
 
     p = sub.add_parser("register", parents=[common, reading, configured],
@@ -412,6 +464,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration",
                    choices=["centerline", "icp_point", "icp_plane", "gicp", "ndt"],
                    help="registration method (default: centerline)")
+    p.add_argument("--network", action="store_true",
+                   help="the epochs are drift networks: measure every point against its branch "
+                   "(adds the uint16 field 'branch'; sections and danger zones per branch)")
+    p.add_argument("--no-drift-correction", action="store_true",
+                   help="with --network: no piecewise-rigid SLAM-drift correction")
     p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("demo", parents=[common],

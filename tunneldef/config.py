@@ -27,6 +27,7 @@ __all__ = [
     "RegistrationConfig",
     "DeformationConfig",
     "DangerConfig",
+    "NetworkConfig",
     "Config",
     "load_config",
     "dump_config",
@@ -211,6 +212,34 @@ class DangerConfig:
 
 
 @dataclass(frozen=True)
+class NetworkConfig:
+    """Drift networks: the plan-view skeleton that gives the graph of edges and junctions."""
+
+    cell: float = _p(0.2, "ours: plan grid cell, m; >= 10 cells across a 2 m drift")
+    min_count: int = _p(2, "ours: least points for an occupied plan cell")
+    min_component_area: float = _p(20.0, "ours: dense parts of the plan smaller than this are "
+                                         "strays, m^2 (a 2 m drift 10 m long is 20 m^2)")
+    max_hole_area: float = _p(16.0, "ours: holes of the plan footprint smaller than this (a "
+                                    "static scanner's blind cone) are filled, m^2; larger ones "
+                                    "are pillars")
+    max_cells: int = _p(20_000_000, "ours: largest plan grid, cells")
+    max_height_ratio: float = _p(1.8, "ours: a plan cell spanning more than this times the "
+                                      "drifts' height means drifts above one another (refused)")
+    min_branch_length: float = _p(3.0, "ours: a dead end must reach this far beyond the wall "
+                                       "of the drift it leaves to be a branch (niches, the "
+                                       "corners of a drift's end are not), m")
+    through_angle_deg: float = _p(35.0, "ours: drifts meeting within this angle of straight "
+                                        "on are one edge through the junction, deg")
+    zone_margin: float = _p(0.5, "ours: junction zones reach this far beyond the other "
+                                 "drift's wall, m")
+    drift_correction: bool = _p(True, "ours: after the rigid registration of two networks, "
+                                      "a piecewise-rigid correction of SLAM drift along each "
+                                      "edge, used only when it lowers the residual by more "
+                                      "than 0.5 mm RMS; false switches it off")
+    drift_block: float = _p(20.0, "ours: length of the blocks of the drift correction, m")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole parameter tree."""
 
@@ -219,6 +248,7 @@ class Config:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
     danger: DangerConfig = field(default_factory=DangerConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
 
     def replace(self, **sections: dict[str, Any]) -> Config:
         """A copy with some values of some sections changed, e.g.

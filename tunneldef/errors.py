@@ -18,6 +18,7 @@ __all__ = [
     "ConfigError",
     "MissingFileError",
     "ImplausibleExtentError",
+    "NetworkError",
 ]
 
 
@@ -60,3 +61,8 @@ class MissingFileError(TunnelDefError):
 class ImplausibleExtentError(NotATunnelError):
     """A length or extent is absurd against the data (e.g. a centreline far longer than the
     slice centres it was fitted to), usually because of stray points or a bad unit."""
+
+
+class NetworkError(NotATunnelError):
+    """A drift network whose centrelines the method cannot vouch for (drifts above one
+    another, an extent too large for the plan grid, a branch without tunnel sections)."""

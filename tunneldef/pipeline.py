@@ -24,7 +24,8 @@ from .errors import EpochMismatchError, RegistrationError
 from .frame import principal_frame
 from .progress import ProgressCallback, notify, under
 
-__all__ = ["detect", "register_epochs", "check_epochs", "Result", "RegisteredPair",
+__all__ = ["detect", "detect_network", "register_epochs", "check_epochs", "Result",
+           "NetworkResult", "RegisteredPair",
            "OUTPUT_FIELDS"]
 
 log = logging.getLogger(__name__)
@@ -276,3 +277,190 @@ def detect(
         cmp_slices=list(reg_all.cmp_extraction.slices),
         timings=timings,
     )
+
+
+# ---------------------------------------------------------------------------------------------
+# drift networks
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class NetworkResult:
+    """Everything :func:`detect_network` found.
+
+    Attributes
+    ----------
+    cloud : Cloud
+        The compared epoch's points (same order, original fields) in the reference frame, with
+        the fields of :class:`Result` plus uint16 ``branch`` (the reference edge a point is
+        measured against; 65535 for none); ``chainage`` is along that edge.
+    transform : ndarray, shape (4, 4)
+        Compared -> reference rigid transform.
+    registration : NetworkRegistration
+    ref_network, cmp_network : CenterlineNetwork
+        The compared network is given in the reference frame.
+    sections, zones : list of dict
+        Per-section statistics and danger zones, each with ``branch`` and ``branch_name``.
+    common_length : dict of int -> float
+        Per reference edge, the length both epochs cover, metres.
+    drift_correction : dict
+        Whether the piecewise-rigid SLAM-drift correction was used, its residuals and blocks
+        (:func:`~tunneldef.registration.network.correct_drift`); the compared points in
+        ``cloud`` carry it, ``transform`` is the rigid part only.
+    """
+
+    cloud: Cloud
+    transform: np.ndarray
+    registration: Any
+    ref_network: Any
+    cmp_network: Any
+    sections: list[dict[str, Any]]
+    zones: list[dict[str, Any]]
+    danger_threshold: float
+    common_length: dict[int, float]
+    config: Config
+    timings: dict[str, float] = field(default_factory=dict)
+    drift_correction: dict[str, Any] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-serialisable summary: transform, both networks, per-edge names, lengths and
+        common lengths, sections and danger zones keyed by branch and chainage, parameters."""
+        d = np.asarray(self.cloud.fields["deformation"], dtype=np.float64)
+        shell = np.asarray(self.cloud.fields["shell"], dtype=bool)
+        branch = np.asarray(self.cloud.fields["branch"])
+        edges = []
+        for e in self.ref_network.edges:
+            v = d[shell & (branch == e.id) & np.isfinite(d)]
+            edges.append({
+                "branch": e.id, "name": e.name, "length_m": e.length,
+                "common_length_m": self.common_length.get(e.id, 0.0),
+                "junction_zones_m": [list(z) for z in e.zones],
+                "shell_points": int(v.size),
+                "mean_abs_m": float(np.mean(np.abs(v))) if v.size else None,
+            })
+        return {
+            "software": {"name": "tunneldef", "version": __version__},
+            "transform_compared_to_reference": np.asarray(self.transform).tolist(),
+            "registration": self.registration.to_dict(),
+            "drift_correction": self.drift_correction,
+            "branches": edges,
+            "danger_threshold_m": self.danger_threshold,
+            "danger_zones": self.zones,
+            "sections": self.sections,
+            "reference_network": self.ref_network.to_dict(),
+            "compared_network": self.cmp_network.to_dict(),
+            "parameters": self.config.to_dict(),
+            "timings_s": self.timings,
+            "sign_convention": "negative = the surface moved into the tunnel (roof sag, wall "
+                               "bulge, floor heave); positive = outward",
+        }
+
+
+def detect_network(
+    ref: Cloud, cmp: Cloud, config: Config | None = None, *,
+    progress: ProgressCallback | None = None,
+) -> NetworkResult:
+    """Deformation of a drift network: every compared point measured against its branch.
+
+    Steps: the centreline network of each epoch
+    (:func:`~tunneldef.centerline.network.extract_network`), registration by the common part
+    of the two graphs (:func:`~tunneldef.registration.network.register_networks`), then per
+    reference edge the single-tube deformation, sections and danger zones on the compared
+    points that belong to that edge (and the reference points near it).
+
+    Raises
+    ------
+    TunnelDefError
+        As :func:`detect`; :class:`~tunneldef.errors.NetworkError` for a network the method
+        cannot vouch for.
+    """
+    from .centerline.network import extract_network
+    from .deformation import (
+        compute_deformation,
+        danger_threshold,
+        danger_zones,
+        section_statistics,
+    )
+    from .network import NO_BRANCH
+    from .registration.network import common_lengths, correct_drift, register_networks
+
+    config = config or Config()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    check_epochs(ref, cmp)
+    lines = {"slicing": config.slicing, "settings": config.centerline,
+             "network": config.network}
+    ref_net = extract_network(ref.xyz, **lines, progress=under(progress, "reference network"))
+    cmp_net = extract_network(cmp.xyz, **lines, progress=under(progress, "compared network"))
+    timings["centrelines"] = time.perf_counter() - t0
+    t = time.perf_counter()
+    reg = register_networks(ref.xyz, cmp.xyz, ref_net.network, cmp_net.network)
+    transform = np.asarray(reg.transform, dtype=np.float64)
+    moved = cmp.transformed(transform)
+    net = ref_net.network
+    drift: dict[str, Any] = {"used": False, "enabled": config.network.drift_correction}
+    if config.network.drift_correction:
+        xyz, drift = correct_drift(ref.xyz, moved.xyz, net, block=config.network.drift_block)
+        drift["enabled"] = True
+        moved = Cloud(xyz, moved.fields, moved.meta)
+    timings["registration"] = time.perf_counter() - t
+    t = time.perf_counter()
+    reach = 2.0 * max(float(ref_net.grid.half_width.max()), 1.0)
+    pc = net.project(moved.xyz, max_distance=reach)
+    pr = net.project(ref.xyz, max_distance=reach)
+    n = len(moved.xyz)
+    out: dict[str, np.ndarray] = {}
+    branch = np.full(n, NO_BRANCH, dtype=np.uint16)
+    dc = config.danger
+    results = []
+    for e in net.edges:
+        # both epochs cut alike: the points assigned to this edge (reference points of other
+        # drifts near a junction put the shell envelope of a section where the compared
+        # epoch has none, and read as false change of 0.2 m beside a 45 degree junction)
+        mc = np.flatnonzero(pc.branch == e.id)
+        mr = pr.branch == e.id
+        if len(mc) < 1000 or mr.sum() < 1000:
+            continue
+        notify(progress, "deformation", e.id / len(net.edges))
+        proj = e.centerline.project(moved.xyz[mc])
+        d = compute_deformation(ref.xyz[mr], moved.xyz[mc], e.centerline,
+                                settings=config.deformation, projection=proj)
+        results.append((e, mc, d))
+        branch[mc] = e.id
+        for k, v in d.fields().items():
+            if k not in out:
+                fill = np.nan if v.dtype.kind == "f" else 0
+                out[k] = np.full(n, fill, dtype=v.dtype)
+            out[k][mc] = v
+    if not results:
+        raise EpochMismatchError("no branch of the reference network has compared points "
+                                 "after registration; do the epochs cover the same drifts?")
+    timings["deformation"] = time.perf_counter() - t
+    t = time.perf_counter()
+    threshold = float(np.median([danger_threshold(d, threshold=dc.threshold, rule=dc.rule)
+                                 for _, _, d in results]))
+    danger = np.zeros(n, dtype=np.uint8)
+    sections: list[dict[str, Any]] = []
+    zones: list[dict[str, Any]] = []
+    for e, mc, d in results:
+        flags, zs = danger_zones(d, threshold=threshold, rule="absolute",
+                                 min_zone_length=dc.min_zone_length, merge_gap=dc.merge_gap,
+                                 neighbours=dc.neighbours, peak_points=dc.peak_points)
+        danger[mc] = np.asarray(flags, dtype=np.uint8)
+        keyed = {"branch": e.id, "branch_name": e.name}
+        # a zone at a junction (or beyond the edge's ends, inside another drift) is flagged:
+        # there the section is no tunnel section
+        zones += [{**keyed, **z, "junction": bool(
+            np.any(e.in_zone(np.array([z["start"], z["end"]])))
+            or z["start"] < 0.0 or z["end"] > e.length)} for z in zs]
+        sections += [{**keyed, **s} for s in section_statistics(
+            d, step=config.deformation.section_step,
+            thickness=config.deformation.section_thickness)]
+    out["danger"] = danger
+    out["branch"] = branch
+    moved.add_fields(out)
+    common = common_lengths(net, ref.xyz, moved.xyz)
+    timings["sections_and_danger"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t0
+    return NetworkResult(moved, transform, reg, net, cmp_net.network.transformed(transform),
+                         sections, zones, threshold, common, config, timings, drift)

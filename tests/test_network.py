@@ -1,0 +1,235 @@
+"""Drift networks: the centreline graph (edges, junctions, point assignment) on a synthetic
+network with truth per branch and on the real junction scan."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tunneldef.centerline.network import JUNCTION, extract_network
+from tunneldef.centerline.plan import plan_grid
+from tunneldef.errors import NetworkError, TunnelDefError
+from tunneldef.network import NO_BRANCH
+from tunneldef.synth import SectionSpec
+from tunneldef.synth.network import (
+    EdgeSpec,
+    JunctionSpec,
+    NetworkSpec,
+    make_network_pair,
+)
+
+CHAMBER = Path(
+    os.environ.get("TUNNELDEF_SHARED_DATA", Path(__file__).resolve().parents[1].parent
+                   / "shared" / "data")
+) / "freiberg_mine_chamber_tls_0005.laz"
+
+
+def small_network() -> NetworkSpec:
+    """A 40 m main drift, a 24 m cross-cut through it at x = 12 m (a crossing) and a 12 m dead
+    end to the left at x = 28 m."""
+    edges = (
+        EdgeSpec("main", ((0.0, 0.0, 0.0), (40.0, 0.0, 0.0)), SectionSpec("rectangle", 4.0, 3.0)),
+        EdgeSpec("xc", ((12.0, -12.0, 0.0), (12.0, 12.0, 0.0)), SectionSpec("arch", 3.6, 3.0)),
+        EdgeSpec("dead-end", ((28.0, 0.0, 0.0), (28.0, 12.0, 0.0)),
+                 SectionSpec("rectangle", 3.5, 3.0), faces=(False, True)),
+    )
+    junctions = (JunctionSpec("crossing", (12.0, 0.0, 0.0), (0, 1)),
+                 JunctionSpec("tee", (28.0, 0.0, 0.0), (0, 2)))
+    return NetworkSpec(edges, junctions, name="small")
+
+
+@pytest.fixture(scope="module")
+def pair():  # noqa: ANN201
+    return make_network_pair(network=small_network(), deformations=(), ref_coverage=None,
+                             cmp_coverage=None, density=150.0, drift=0.0, equipment=False,
+                             seed=3)
+
+
+@pytest.fixture(scope="module")
+def result(pair):  # noqa: ANN001, ANN201
+    return extract_network(pair.ref.xyz)
+
+
+def _truth_axis_errors(net, cl, juncs, hw):  # noqa: ANN001, ANN202
+    """Distances of a truth axis (every 0.25 m, 1 m inside its ends, 2 m beyond the other
+    drifts' walls at junctions) to the network's curves."""
+    s = np.arange(1.0, cl.length - 1.0, 0.25)
+    p = cl.point_at(s)
+    d = np.min(np.linalg.norm(p[:, None, :2] - juncs[None, :, :2], axis=2), axis=1)
+    p = p[d > hw + 2.0]
+    pr = net.project(p)
+    return np.where(pr.inside, pr.distance, np.inf)
+
+
+def test_every_branch_found_and_centred(pair, result) -> None:  # noqa: ANN001
+    net = result.network
+    assert len(net.edges) == 3
+    assert len(net.junctions) == 2
+    # the main drift passes through both junctions as one edge; the cross-cut passes through
+    assert sorted(len(j.edges) for j in net.junctions) == [2, 2]
+    juncs = pair.truth.junction_positions
+    for b, cl in enumerate(pair.truth.centerlines):
+        err = _truth_axis_errors(net, cl, juncs, 2.0)
+        assert np.all(np.isfinite(err)), f"branch {b} not covered"
+        assert np.percentile(err, 95) <= 0.03, (b, np.percentile(err, 95))
+    # junction nodes where the drifts cross
+    pos = np.array([j.position for j in net.junctions])
+    d = np.linalg.norm(pos[:, None, :2] - juncs[None, :, :2], axis=2).min(axis=0)
+    assert np.all(d < 0.3), d
+
+
+def test_junction_slices_are_flagged_not_fitted(result) -> None:  # noqa: ANN001
+    for e in result.network.edges:
+        flagged = [r for r in e.slices if r.reason == JUNCTION]
+        assert flagged, e.id
+        assert not any(r.ok for r in flagged)
+        assert e.zones
+        ok = np.array([r.chainage for r in e.slices if r.ok])
+        assert not np.any(e.in_zone(ok))
+
+
+def test_points_are_assigned_to_their_branch(pair, result) -> None:  # noqa: ANN001
+    net = result.network
+    truth = pair.truth.ref
+    pr = net.project(pair.ref.xyz, max_distance=5.0)
+    m = ~truth.stray & (truth.label == 0)
+    # map network edges to truth branches by majority, then compare away from junctions
+    mapping = {}
+    for e in net.edges:
+        sel = m & (pr.branch == e.id)
+        mapping[e.id] = int(np.bincount(truth.branch[sel]).argmax())
+    assert sorted(mapping.values()) == [0, 1, 2]
+    got = np.array([mapping.get(int(b), -1) for b in pr.branch[m]])
+    away = ~pr.junction[m]
+    assert np.mean(got[away] == truth.branch[m][away]) > 0.995
+    # the far stray point belongs to no edge
+    assert np.all(pr.branch[truth.stray] == NO_BRANCH)
+
+
+def test_graph_json_ready(result) -> None:  # noqa: ANN001
+    d = json.loads(json.dumps(result.network.to_dict(curves=False)))
+    assert {"nodes", "edges"} <= set(d)
+    assert all(len(n["edges"]) == len(n["chainages_m"]) for n in d["nodes"])
+
+
+def test_a_far_stray_point_creates_no_edge_and_no_huge_grid() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.uniform([0, -2, -1.5], [30, 2, 1.5], size=(20000, 3))
+    x = np.vstack([x, [[1e6, 5e5, 10.0]]])
+    g = plan_grid(x)
+    assert not g.keep[-1] and g.keep[:-1].all()
+    assert g.footprint.size < 200 * 30 / 0.2**2
+
+
+def test_drifts_above_one_another_are_refused() -> None:
+    rng = np.random.default_rng(1)
+    lower = rng.uniform([0, -2, -1.5], [30, 2, 1.5], size=(30000, 3))
+    upper = rng.uniform([10, -2, 8.5], [20, 2, 11.5], size=(10000, 3))
+    with pytest.raises(NetworkError, match="above one another"):
+        plan_grid(np.vstack([lower, upper]))
+    assert issubclass(NetworkError, TunnelDefError)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not CHAMBER.is_file(), reason="real scan not present")
+def test_real_junction_scan() -> None:
+    from tunneldef.io import read
+
+    x = read(CHAMBER).xyz
+    x = x[np.random.default_rng(0).random(len(x)) < 0.5]
+    net = extract_network(x).network
+    # a drift about 13 m along y through the junction, a branch of about 5.5 m leaving it
+    assert len(net.edges) == 2 and len(net.junctions) == 1
+    main, branch = net.edges
+    d = main.centerline.points[-1] - main.centerline.points[0]
+    assert 10.5 < main.length < 14.5 and abs(d[1]) > 10 * abs(d[2])
+    assert 3.5 < branch.length < 7.0
+    j = net.junctions[0]
+    assert np.linalg.norm(j.position[:2] - [0.1, -0.5]) < 0.6
+    t = branch.centerline.points[-1] - branch.centerline.points[0]
+    cos = abs(t[:2] @ d[:2]) / np.linalg.norm(t[:2]) / np.linalg.norm(d[:2])
+    angle = np.degrees(np.arccos(cos))
+    assert 50 < angle < 80
+
+
+@pytest.mark.slow
+def test_detect_network_measures_each_branch() -> None:
+    from tunneldef.pipeline import detect_network
+    from tunneldef.synth import DeformationSpec
+    from tunneldef.synth.network import BranchDeformation
+    from tunneldef.transforms import apply_transform
+
+    defs = (BranchDeformation(1, DeformationSpec("wall_bulge", 19.0, 3.0, 1.5, 0.06, "left")),)
+    p = make_network_pair(network=small_network(), deformations=defs, ref_coverage=None,
+                          cmp_coverage=None, density=100.0, drift=0.0, equipment=False,
+                          seed=4, yaw_deg=70.0)
+    r = detect_network(p.ref, p.cmp)
+    err = np.linalg.norm(apply_transform(r.transform, p.cmp.xyz)
+                         - apply_transform(p.truth.transform, p.cmp.xyz), axis=1)
+    assert np.mean(err) < 0.005
+    branch = r.cloud.fields["branch"]
+    assert branch.dtype == np.uint16
+    d = r.cloud.fields["deformation"]
+    core = (p.truth.cmp.branch == 1) & (p.truth.cmp.displacement < -0.04) & np.isfinite(d)
+    assert core.sum() > 20
+    # measured on the cross-cut's edge, inward, near the truth
+    assert len(np.unique(branch[core])) == 1
+    assert np.median(d[core]) == pytest.approx(np.median(p.truth.cmp.displacement[core]),
+                                               abs=0.015)
+    s = json.loads(json.dumps(r.summary(), default=float))
+    assert {b["branch"] for b in s["branches"]} == {0, 1, 2}
+    assert all(b["common_length_m"] > 0.6 * b["length_m"] for b in s["branches"])
+    assert all("branch" in x for x in s["sections"])
+
+
+@pytest.mark.slow
+def test_drift_correction_lowers_the_residual_and_keeps_a_small_sag() -> None:
+    from tunneldef.registration.network import correct_drift, register_networks
+    from tunneldef.synth import DeformationSpec
+    from tunneldef.synth.network import BranchDeformation
+    from tunneldef.transforms import apply_transform
+
+    # a 15 mm roof sag 1 m across, SLAM drift of 5 cm per sqrt(100 m) in each epoch
+    defs = (BranchDeformation(0, DeformationSpec("roof_sag", 20.0, 1.0, 1.0, 0.015)),)
+    p = make_network_pair(network=small_network(), deformations=defs, ref_coverage=None,
+                          cmp_coverage=None, density=200.0, drift=0.05, equipment=False,
+                          seed=5, yaw_deg=40.0)
+    rn = extract_network(p.ref.xyz).network
+    cn = extract_network(p.cmp.xyz).network
+    moved = apply_transform(register_networks(p.ref.xyz, p.cmp.xyz, rn, cn).transform,
+                            p.cmp.xyz)
+    corr, info = correct_drift(p.ref.xyz, moved, rn)
+    assert info["used"]
+    assert info["residual_rms_after_m"] < info["residual_rms_before_m"] - 0.0005
+    # the correction is smooth along the drift: it moves the sag's points as it moves their
+    # surroundings, so it cannot take the sag out
+    core = p.truth.cmp.displacement < -0.012
+    ring = (np.linalg.norm(p.truth.cmp.xyz_ref - p.truth.cmp.xyz_ref[core].mean(axis=0),
+                           axis=1) < 4.0) & ~core
+    shift = corr - moved
+    assert np.linalg.norm(np.median(shift[core], axis=0) - np.median(shift[ring], axis=0)) < 0.002
+    # switched off: nothing moves
+    off, info_off = correct_drift(p.ref.xyz, moved, rn, min_gain=np.inf)
+    assert off is moved and not info_off["used"]
+
+
+@pytest.mark.slow
+def test_cli_centerline_network_writes_the_graph(pair, tmp_path) -> None:  # noqa: ANN001
+    from tunneldef.cli import main
+    from tunneldef.io import read, write
+
+    src = tmp_path / "ref.ply"
+    write(src, pair.ref)
+    assert main(["centerline", "--network", "--quiet", str(src), "-o",
+                 str(tmp_path / "net.json")]) == 0
+    graph = json.loads((tmp_path / "net.json").read_text())
+    assert len(graph["edges"]) == 3 and len(graph["nodes"]) == 2
+    assert all(len(e["centerline"]["points"]) > 10 for e in graph["edges"])
+    assert main(["centerline", "--network", "--quiet", str(src), "-o",
+                 str(tmp_path / "net.ply")]) == 0
+    curve = read(tmp_path / "net.ply")
+    assert set(np.unique(curve.fields["edge"])) == {0, 1, 2}

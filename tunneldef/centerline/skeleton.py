@@ -1,0 +1,350 @@
+"""The topology of a drift network: the skeleton of its plan footprint as a graph.
+
+Steps of :func:`skeleton_graph`, on a :class:`~tunneldef.centerline.plan.PlanGrid`:
+
+1. Skeleton (scikit-image) and its pixel graph: nodes are skeleton pixels with other than two
+   neighbours (clusters of adjacent ones merged), edges the pixel chains between them.
+2. Simplification: spurs (leaf edges protruding less than ``min_branch_length`` beyond the
+   tunnel wall at their node: the corners of a drift's end, niches) are pruned, nodes of
+   degree two are dissolved, and nodes closer than the tunnel's half-width are merged (a
+   four-way crossing often skeletonises as two three-way nodes).
+3. Through edges: at each junction the two most nearly opposite edges (within
+   ``through_angle_deg`` of a straight line) are joined into one edge that passes the junction,
+   so the main drift keeps one chainage through its cross-cuts and a through cross-cut is one
+   branch; what remains ends at the junction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ..errors import NetworkError
+from .plan import PlanGrid
+
+__all__ = ["SkeletonEdge", "SkeletonGraph", "skeleton_graph"]
+
+
+@dataclass
+class SkeletonEdge:
+    """A chain of skeleton pixels between two nodes (``-1``: a free end)."""
+
+    nodes: list[int]
+    path: np.ndarray  # (P, 2) cell indices, from nodes[0] to nodes[1]
+    length: float = 0.0
+
+
+@dataclass
+class SkeletonGraph:
+    """Nodes (plan cell positions, radii) and edges of a network's skeleton.
+
+    Attributes
+    ----------
+    nodes : dict of int -> ndarray, shape (2,)
+        Node positions as fractional cell indices.
+    radius : dict of int -> float
+        Half-width of the footprint at each node, metres.
+    edges : list of SkeletonEdge
+    junctions : dict of int -> list of (edge index, end)
+        After :func:`skeleton_graph`: which edge ends (0 start / 1 end), or edges passing
+        through, meet at each junction node.
+    """
+
+    nodes: dict[int, np.ndarray]
+    radius: dict[int, float]
+    edges: list[SkeletonEdge]
+    junctions: dict[int, list[int]] = field(default_factory=dict)
+
+
+def _pixel_graph(skel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Skeleton pixel coordinates (K, 2) and their neighbour pairs (E, 2), 8-connected but
+    without diagonal links that a 4-connected path already joins (staircases)."""
+    pix = np.argwhere(skel)
+    idx = -np.ones(skel.shape, dtype=np.int64)
+    idx[pix[:, 0], pix[:, 1]] = np.arange(len(pix))
+    pad = np.pad(idx, 1, constant_values=-1)
+    on = np.pad(skel, 1, constant_values=False)
+    pairs = []
+    i, j = pix[:, 0] + 1, pix[:, 1] + 1
+    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        other = pad[i + di, j + dj]
+        m = other >= 0
+        if di and dj:  # diagonal: drop when a 4-neighbour path exists
+            m &= ~(on[i + di, j] | on[i, j + dj])
+        pairs.append(np.stack([np.arange(len(pix))[m], other[m]], axis=1))
+    return pix, np.concatenate(pairs)
+
+
+def _path_length(path: np.ndarray, cell: float) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)) * cell) if len(path) > 1 \
+        else 0.0
+
+
+def _trace(pix: np.ndarray, pairs: np.ndarray, deg: np.ndarray) -> tuple[dict, list]:
+    """Node clusters and pixel chains of a skeleton pixel graph."""
+    n = len(pix)
+    nbrs: list[list[int]] = [[] for _ in range(n)]
+    for a, b in pairs:
+        nbrs[a].append(b)
+        nbrs[b].append(a)
+    is_node = deg != 2
+    # cluster adjacent node pixels
+    node_pairs = pairs[is_node[pairs[:, 0]] & is_node[pairs[:, 1]]]
+    g = coo_matrix((np.ones(len(node_pairs)), (node_pairs[:, 0], node_pairs[:, 1])), shape=(n, n))
+    _, lab = connected_components(g, directed=False)
+    node_of = np.where(is_node, lab, -1)
+    clusters: dict[int, list[int]] = {}
+    for p in np.flatnonzero(is_node):
+        clusters.setdefault(int(node_of[p]), []).append(int(p))
+    seen = np.zeros(n, dtype=bool)
+    chains: list[tuple[int, int, list[int]]] = []
+    for c, members in clusters.items():
+        for p in members:
+            for q in nbrs[p]:
+                if is_node[q] or seen[q]:
+                    continue
+                path, prev, cur = [p, q], p, q
+                seen[q] = True
+                while not is_node[cur]:
+                    nxt = [r for r in nbrs[cur] if r != prev]
+                    if not nxt:
+                        break
+                    prev, cur = cur, nxt[0]
+                    if not is_node[cur]:
+                        if seen[cur]:
+                            break
+                        seen[cur] = True
+                    path.append(cur)
+                end = int(node_of[cur]) if is_node[cur] else -1
+                chains.append((c, end, path))
+    # loops without any node (a ring drift): cut at an arbitrary pixel
+    for p in np.flatnonzero(~is_node & ~seen):
+        if seen[p]:
+            continue
+        path, prev, cur = [int(p)], -1, int(p)
+        seen[p] = True
+        while True:
+            nxt = [r for r in nbrs[cur] if r != prev and not seen[r]]
+            if not nxt:
+                break
+            prev, cur = cur, nxt[0]
+            seen[cur] = True
+            path.append(cur)
+        cid = max(clusters, default=-1) + 1
+        clusters[cid] = [int(p)]
+        chains.append((cid, cid, path + [int(p)]))
+    return clusters, chains
+
+
+def skeleton_graph(
+    grid: PlanGrid,
+    *,
+    min_branch_length: float = 3.0,
+    through_angle_deg: float = 35.0,
+) -> SkeletonGraph:
+    """The simplified skeleton graph of a footprint (see the module notes, steps 4-6).
+
+    Parameters
+    ----------
+    grid : PlanGrid
+    min_branch_length : float
+        A dead-end edge must reach this far beyond the wall of the drift it leaves, metres.
+    through_angle_deg : float
+        Two edges meeting within this angle of a straight line pass through their junction as
+        one edge.
+
+    Returns
+    -------
+    SkeletonGraph
+        Edges with their pixel paths and a ``junctions`` map of node -> member edge indices.
+    """
+    from skimage.morphology import skeletonize
+
+    skel = skeletonize(grid.footprint)
+    pix, pairs = _pixel_graph(skel)
+    if len(pix) < 2:
+        raise NetworkError("the footprint's skeleton is empty; is the cloud a tunnel scan?")
+    deg = np.bincount(pairs.ravel(), minlength=len(pix))
+    clusters, chains = _trace(pix, pairs, deg)
+    cell = grid.cell
+    nodes = {c: pix[m].mean(axis=0) for c, m in clusters.items()}
+    radius = {c: float(grid.half_width[tuple(pix[m[0]])]) for c, m in clusters.items()}
+    edges = [
+        SkeletonEdge([a, b], pix[path].astype(np.float64), _path_length(pix[path], cell))
+        for a, b, path in chains
+    ]
+    edges = _simplify(edges, nodes, radius, grid, min_branch_length)
+    graph = SkeletonGraph(nodes, radius, edges)
+    _join_through(graph, cell, through_angle_deg)
+    return graph
+
+
+def _incidence(edges: list[SkeletonEdge]) -> dict[int, list[int]]:
+    inc: dict[int, list[int]] = {}
+    for k, e in enumerate(edges):
+        for v in e.nodes:
+            if v >= 0:
+                inc.setdefault(v, []).append(k)
+    return inc
+
+
+def _simplify(
+    edges: list[SkeletonEdge],
+    nodes: dict[int, np.ndarray],
+    radius: dict[int, float],
+    grid: PlanGrid,
+    min_branch: float,
+) -> list[SkeletonEdge]:
+    cell = grid.cell
+    edges = [e for e in edges if len(e.path) >= 2]
+    for _ in range(100):
+        changed = False
+        inc = _incidence(edges)
+        # 1. prune spurs: a leaf edge (one end free or of degree one) that barely leaves the wall
+        for k, e in enumerate(edges):
+            a, b = e.nodes
+            deg_a = len(inc.get(a, []))
+            deg_b = len(inc.get(b, []))
+            if a == b:
+                continue
+            leaf_b = deg_b <= 1 and deg_a >= 3
+            leaf_a = deg_a <= 1 and deg_b >= 3
+            if leaf_a or leaf_b:
+                hub = b if leaf_a else a
+                if e.length - radius.get(hub, 0.0) < min_branch:
+                    edges.pop(k)
+                    changed = True
+                    break
+        if changed:
+            continue
+        # 2. merge nodes joined by a short edge (within the drift's half-width)
+        for k, e in enumerate(edges):
+            a, b = e.nodes
+            if a < 0 or b < 0 or a == b:
+                continue
+            if e.length <= max(radius[a], radius[b]) and len(inc[a]) >= 3 and len(inc[b]) >= 3:
+                edges.pop(k)
+                w = np.array([len(inc[a]), len(inc[b])], dtype=np.float64)
+                nodes[a] = (nodes[a] * w[0] + nodes[b] * w[1]) / w.sum()
+                radius[a] = max(radius[a], radius[b])
+                for f in edges:
+                    f.nodes = [a if v == b else v for v in f.nodes]
+                    if f.nodes[0] == a:
+                        f.path = np.vstack([nodes[a][None], f.path[1:]])
+                    if f.nodes[1] == a:
+                        f.path = np.vstack([f.path[:-1], nodes[a][None]])
+                changed = True
+                break
+        if changed:
+            continue
+        # 3. dissolve nodes of degree two
+        for v, ks in inc.items():
+            if len(ks) != 2 or ks[0] == ks[1]:
+                continue
+            e, f = edges[ks[0]], edges[ks[1]]
+            pe = e.path if e.nodes[1] == v else e.path[::-1]
+            pf = f.path if f.nodes[0] == v else f.path[::-1]
+            ne = e.nodes[0] if e.nodes[1] == v else e.nodes[1]
+            nf = f.nodes[1] if f.nodes[0] == v else f.nodes[0]
+            merged = SkeletonEdge([ne, nf], np.vstack([pe, pf[1:]]))
+            merged.length = _path_length(merged.path, cell)
+            edges = [g for i, g in enumerate(edges) if i not in ks] + [merged]
+            changed = True
+            break
+        if not changed:
+            break
+    return edges
+
+
+def _direction(path: np.ndarray, from_start: bool, reach: float) -> np.ndarray:
+    """Unit plan direction of a path leaving its start (or end) node, measured ``reach``
+    cells away (beyond the junction's disturbance)."""
+    p = path if from_start else path[::-1]
+    d = np.linalg.norm(p - p[0], axis=1)
+    i = int(np.searchsorted(d, reach)) if d[-1] > reach else len(p) - 1
+    v = p[i] - p[0]
+    n = np.linalg.norm(v)
+    return v / n if n > 0 else v
+
+
+def _join_through(graph: SkeletonGraph, cell: float, angle_deg: float) -> None:
+    """Join the most nearly straight pairs of edges at each junction into through edges and
+    record each junction's member edges."""
+    edges = graph.edges
+    inc = _incidence(edges)
+    cos_lim = -np.cos(np.radians(angle_deg))
+    link: dict[tuple[int, int], tuple[int, int]] = {}
+    for v, ks in inc.items():
+        if len(ks) < 3:
+            continue
+        reach = (graph.radius[v] + 2.0) / cell
+        ends = []
+        for k in ks:
+            e = edges[k]
+            for side in (0, 1):
+                if e.nodes[side] == v and (k, side) not in [x[:2] for x in ends]:
+                    ends.append((k, side, _direction(e.path, side == 0, reach)))
+        free = list(range(len(ends)))
+        while len(free) >= 2:
+            best, pair = cos_lim, None
+            for ia in free:
+                for ib in free:
+                    if ib <= ia or ends[ia][0] == ends[ib][0]:
+                        continue
+                    c = float(ends[ia][2] @ ends[ib][2])
+                    if c < best:
+                        best, pair = c, (ia, ib)
+            if pair is None:
+                break
+            a, b = ends[pair[0]], ends[pair[1]]
+            link[(a[0], a[1])] = (b[0], b[1])
+            link[(b[0], b[1])] = (a[0], a[1])
+            free = [f for f in free if f not in pair]
+    # follow the links into chains of edges
+    used = np.zeros(len(edges), dtype=bool)
+    out: list[SkeletonEdge] = []
+    members: dict[int, list[int]] = {}
+
+    def chain_from(k: int, side: int) -> SkeletonEdge:
+        paths, nodes_seq = [], []
+        cur, entry = k, side
+        start_node = edges[k].nodes[side]
+        while True:
+            used[cur] = True
+            e = edges[cur]
+            p = e.path if entry == 0 else e.path[::-1]
+            paths.append(p if not paths else p[1:])
+            exit_side = 1 - entry
+            v = e.nodes[exit_side]
+            nxt = link.get((cur, exit_side))
+            if nxt is None or used[nxt[0]]:
+                end_node = v
+                break
+            nodes_seq.append(v)
+            cur, entry = nxt
+        path = np.vstack(paths)
+        se = SkeletonEdge([start_node, end_node], path, _path_length(path, cell))
+        se.through = nodes_seq  # type: ignore[attr-defined]
+        return se
+
+    for k in range(len(edges)):
+        if used[k]:
+            continue
+        for side in (0, 1):
+            if (k, side) not in link:
+                out.append(chain_from(k, side))
+                break
+    for k in range(len(edges)):
+        if not used[k]:  # a ring of through links: cut anywhere
+            out.append(chain_from(k, 0))
+    for i, e in enumerate(out):
+        for v in list(e.nodes) + list(getattr(e, "through", [])):
+            if v >= 0 and len(inc.get(v, [])) >= 3:
+                members.setdefault(v, [])
+                if i not in members[v]:
+                    members[v].append(i)
+    graph.edges = out
+    graph.junctions = members
