@@ -15,9 +15,13 @@ against the documented API only. Behaviour copied from the bindings:
 * ``getGlobalShift()`` returns a vector with ``.x .y .z``; ``getGlobalScale()`` a float.
 * ``ccGLMatrix().asArray()`` is a writable (4, 4) float32 view of column-major storage.
 
-Switches for the known runtime quirks: ``BROKEN_POINTS`` (``points()`` returns N copies of
-the first row, runtime issues #124/#142/#152) and ``SCALE_GETTER_BUG`` (``getGlobalScale``
-bound to the setter in some builds).
+Switches for the known runtime quirks: ``STRIDE0_ARRAYS`` (a runtime built with pybind11 <
+2.12 under numpy 2: every array it hands out has stride 0, so ``points()`` repeats point 0,
+writes into ``ccGLMatrix.asArray()`` are lost and ``ScalarField.toArray()`` repeats the last
+value) and ``SCALE_GETTER_BUG`` (``getGlobalScale`` bound to the setter in some builds).
+
+``tests/test_plugin_runtime_api.py`` checks, inside the real CloudCompare, that every public
+name faked here exists there with a compatible signature.
 """
 
 from __future__ import annotations
@@ -30,8 +34,13 @@ import numpy as np
 PointCoordinateType = np.float32
 ScalarType = np.float32
 
-BROKEN_POINTS = False
+STRIDE0_ARRAYS = False
 SCALE_GETTER_BUG = False
+
+
+def _stride0(array: np.ndarray, row: int = 0) -> np.ndarray:
+    """What a stride-0 runtime hands out: every row (or element) is ``array[row]``."""
+    return np.broadcast_to(array[row], array.shape)
 
 
 class CCVector3d:
@@ -134,6 +143,8 @@ class ccScalarField:  # noqa: N801
         return self._max
 
     def toArray(self) -> np.ndarray:  # noqa: N802
+        if STRIDE0_ARRAYS and self._values.size:
+            return _stride0(self._values, -1)
         return self._values.copy()
 
     def setColorScale(self, scale: ccColorScale.Shared) -> None:  # noqa: N802
@@ -200,6 +211,8 @@ class ccGLMatrix:  # noqa: N801
         self._data = np.eye(4, dtype=np.float32).ravel(order="F").copy()
 
     def asArray(self) -> np.ndarray:  # noqa: N802
+        if STRIDE0_ARRAYS:  # a writable array whose writes never reach the matrix
+            return np.repeat(self._data.reshape(4, 4)[:1], 4, axis=0)
         return self._data.reshape(4, 4)  # row i of this view = column i of the matrix
 
     def matrix(self) -> np.ndarray:
@@ -228,8 +241,8 @@ class ccPointCloud(ccHObject):  # noqa: N801
 
     def points(self) -> np.ndarray:
         view = self._xyz.view()
-        if BROKEN_POINTS and len(view):
-            view = np.broadcast_to(self._xyz[0], self._xyz.shape)
+        if STRIDE0_ARRAYS and len(view):
+            view = _stride0(self._xyz)
         view = view.view()
         view.flags.writeable = False
         return view
@@ -342,6 +355,15 @@ class ccProgressDialog:  # noqa: N801
         return self.cancel_after is not None and len(self.values) >= self.cancel_after
 
 
+def ProcessEvents() -> None:  # noqa: N802
+    """The real one runs ``QCoreApplication::processEvents()``; counted here."""
+    global PROCESSED_EVENTS
+    PROCESSED_EVENTS += 1
+
+
+PROCESSED_EVENTS = 0
+
+
 def RunInThread(func: Any, *args: Any, **kwargs: Any) -> Any:  # noqa: N802
     """The real one runs ``func`` in a QtConcurrent thread and waits; same result here."""
     import threading
@@ -437,8 +459,12 @@ def install() -> types.ModuleType:
     import sys
 
     mod = sys.modules[__name__]
-    mod.BROKEN_POINTS = False
+    mod.STRIDE0_ARRAYS = False
     mod.SCALE_GETTER_BUG = False
+    mod.PROCESSED_EVENTS = 0
+    from tunneldef_cloudcompare.runtime import reset_runtime_check
+
+    reset_runtime_check()
     mod._GUI = ccPythonInstance()
     mod._CMDLINE = None
     mod.ccColorScalesManager._instance = None

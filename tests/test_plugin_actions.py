@@ -216,7 +216,20 @@ def test_detect_move_original(pycc, plugin, core, pair):
     assert np.abs(adapter.read_points(cmp_e) - pair.cmp_in_ref).max() < 1e-4
 
 
-def test_detect_cancel_changes_nothing(pycc, plugin, core, pair, monkeypatch, capsys):
+class SlowCore(FakeCore):
+    """A core that keeps reporting progress (a long computation) until it is cancelled."""
+
+    def detect(self, ref, cmp, config=None, *, progress=None):
+        import time
+
+        self.calls.append(SimpleNamespace(ref=ref, cmp=cmp, config=config))
+        for i in range(500):  # at most 5 s
+            progress("deformation", i / 500)
+            time.sleep(0.01)
+        raise AssertionError("the worker was never cancelled")
+
+
+def test_detect_cancel_changes_nothing(pycc, plugin, monkeypatch, pair, capsys):
     from tunneldef_cloudcompare import adapter
 
     class CancelAfterTwo(pycc.ccProgressDialog):
@@ -225,11 +238,37 @@ def test_detect_cancel_changes_nothing(pycc, plugin, core, pair, monkeypatch, ca
             self.cancel_after = 2
 
     monkeypatch.setattr(pycc, "ccProgressDialog", CancelAfterTwo)
+    slow = SlowCore(pair)
+    _patch_core(monkeypatch, "tunneldef.pipeline", "detect", slow.detect)
     _, cmp_e = _select(pycc, pair)
     assert plugin.detect_deformation(adapter.DetectParams(), ask=False) is None
+    assert len(slow.calls) == 1  # the core ran on the worker and stopped at Cancel
     assert cmp_e.getNumberOfScalarFields() == 0 and pycc.GetInstance().db == []
     assert "cancelled; nothing was changed" in capsys.readouterr().out
     assert pycc.GetInstance().frozen == [True, False]  # UI unfrozen after cancel
+    assert pycc.PROCESSED_EVENTS >= 2  # the GUI was kept alive while waiting
+
+
+def test_actions_refuse_a_stride0_runtime(pycc, plugin, core, pair, capsys):
+    from tunneldef_cloudcompare import adapter
+
+    _, cmp_e = _select(pycc, pair)
+    pycc.STRIDE0_ARRAYS = True
+    assert plugin.detect_deformation(adapter.DetectParams(), ask=False) is None
+    assert plugin.register_to_reference() is None
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 2 and all("stride-0 numpy arrays" in line for line in out)
+    assert out[0].startswith("[tunneldef] Detect deformation: this CloudCompare Python runtime")
+    assert core.calls == [] and cmp_e.getNumberOfScalarFields() == 0
+    assert pycc.GetInstance().db == []
+
+
+def test_actions_in_command_line_mode_say_they_need_the_window(pycc, plugin, core, capsys):
+    pycc._GUI = None
+    pycc._CMDLINE = pycc.ccCommandLineInterface([])
+    assert plugin.detect_deformation(ask=False) is None
+    out = capsys.readouterr().out
+    assert "needs CloudCompare's window" in out and core.calls == []
 
 
 def test_detect_core_error_is_reported(pycc, plugin, monkeypatch, pair, capsys):
@@ -287,12 +326,11 @@ def test_extract_centerline_action(pycc, plugin, monkeypatch, pair, capsys):
 def test_register_action_prints_matrix(pycc, plugin, monkeypatch, pair, capsys):
     from tunneldef_cloudcompare import adapter
 
-    def fake_register(
-        ref_xyz, cmp_xyz, *, method="centerline", config=None, progress=None, **kwargs
-    ):
-        return SimpleNamespace(transform=pair.transform, method=method, fitness=0.012)
+    def fake_register_epochs(ref, cmp, config=None, *, progress=None):
+        reg = SimpleNamespace(transform=pair.transform, method="centerline", fitness=0.012)
+        return SimpleNamespace(registration=reg)
 
-    _patch_core(monkeypatch, "tunneldef.registration", "register", fake_register)
+    _patch_core(monkeypatch, "tunneldef.pipeline", "register_epochs", fake_register_epochs)
     ref_e, cmp_e = _select(pycc, pair)
     before = np.asarray(cmp_e.points()).copy()
     copy = plugin.register_to_reference()

@@ -3,9 +3,11 @@
 Found by CloudCompare through the entry point ``cloudcompare.plugins: tunneldef =
 tunneldef_cloudcompare.plugin:TunnelDefPlugin``. Only ``pycc`` and numpy are imported at module
 level (an import error would silently drop the plugin); the core, Open3D and Qt are imported
-inside the actions. Each action: read the selection on the main thread -> run the core in
-``pycc.RunInThread`` with a cancellable ``ccProgressDialog`` -> write fields / add entities on
-the main thread.
+inside the actions. Each action: check that the runtime's arrays are sound -> read the
+selection on the main thread -> run the core on a Python worker thread while the main thread
+keeps CloudCompare responsive (``pycc.ProcessEvents``) and shows a cancellable
+``ccProgressDialog`` -> write fields / add entities on the main thread. ``pycc.RunInThread``
+is not used: it can abort CloudCompare (see :mod:`.worker`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ import numpy as np  # noqa: F401 - the plugin's only other top-level dependency
 import pycc
 
 from . import adapter
-from .adapter import DetectParams, Outcome, ProgressBridge
+from .params import DetectParams
+from .worker import Outcome, ProgressBridge
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +48,7 @@ def _run_with_progress(
     """Run ``func(*args, progress=bridge, **kwargs)`` in a worker thread with a cancellable
     progress dialog; the UI is frozen meanwhile. Exceptions come back in the Outcome."""
     cc = pycc.GetInstance()
+    process_events = getattr(pycc, "ProcessEvents", None)
     dialog = pycc.ccProgressDialog(cancelButton=True)
     dialog.setMethodTitle(title)
     dialog.setInfo("working... (Cancel stops at the next step)")
@@ -52,12 +56,12 @@ def _run_with_progress(
     dialog.start()
     cc.freezeUI(True)
     try:
-        outcome = pycc.RunInThread(adapter.run_guarded, func, *args, progress=bridge, **kwargs)
+        outcome = adapter.run_in_worker(
+            func, *args, bridge=bridge, process_events=process_events, **kwargs
+        )
     finally:
         cc.freezeUI(False)
         dialog.stop()
-    if outcome is None:  # a runtime that loses the return value
-        outcome = Outcome(error=RuntimeError("the worker thread returned nothing"))
     return outcome, bridge
 
 
@@ -74,7 +78,20 @@ def _report_failure(action: str, outcome: Outcome) -> None:
 
 
 def _selected_clouds(count: int, action: str) -> list[Any] | None:
+    """The selected clouds if there are ``count`` and the runtime is sound, else None (after
+    a one-line message)."""
+    try:
+        adapter.check_runtime(pycc)
+    except adapter.BrokenRuntimeError as exc:
+        _error(f"{action}: {exc}")
+        return None
     cc = pycc.GetInstance()
+    if not hasattr(cc, "getSelectedEntities"):  # -PYTHON_SCRIPT mode: no window, no selection
+        _error(
+            f"{action}: needs CloudCompare's window (no selection in command-line mode); "
+            "use cloudcompare_scripts/detect_in_cloudcompare.py there"
+        )
+        return None
     clouds = adapter.point_clouds(cc.getSelectedEntities())
     if len(clouds) != count:
         what = "one point cloud" if count == 1 else f"{count} point clouds"
@@ -107,7 +124,8 @@ def detect_deformation(params: DetectParams | None = None, *, ask: bool = True) 
     if ask:
         from .dialog import ask_detect_params
 
-        params = ask_detect_params(adapter._name(clouds[0]), adapter._name(clouds[1]), params)
+        names = [adapter.entity_name(c) for c in clouds]
+        params = ask_detect_params(names[0], names[1], params)
         if params is None:
             return None
     ref_e, cmp_e = (clouds[1], clouds[0]) if params.swap else (clouds[0], clouds[1])
@@ -204,7 +222,7 @@ def _keep(objects: list[Any]) -> None:
 
 
 class TunnelDefPlugin(pycc.PythonPluginInterface):
-    """tunneldef's menu in CloudCompare (Plugins > Python > tunneldef)."""
+    """tunneldef's menu in CloudCompare (*Plugins > Python Plugin > Plugins > tunneldef*)."""
 
     def __init__(self) -> None:
         pycc.PythonPluginInterface.__init__(self)
