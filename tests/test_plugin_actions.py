@@ -434,7 +434,7 @@ def test_detect_action_with_real_core(pycc, plugin, monkeypatch):
             f[name], np.asarray(res.cloud.fields[name], np.float32), atol=0, err_msg=name
         )
     assert np.abs(adapter.read_points(made.registered) - res.cloud.xyz).max() < 1e-4
-    ref_line = adapter.read_points(made.ref_centerline.cloud)
+    ref_line = adapter.read_points(made.ref_centerline.getAssociatedCloud())
     assert np.abs(ref_line - res.ref_centerline.points).max() < 1e-4
     assert res.ref_centerline.length > 15.0  # a 20 m tunnel (the overlap of both scans)
 
@@ -465,7 +465,8 @@ def test_extract_centerline_action_with_real_core(pycc, plugin, monkeypatch, cap
     poly = plugin.extract_centerline()
     assert poly is not None
     res = seen["res"]
-    assert np.abs(adapter.read_points(poly.cloud) - res.centerline.points).max() < 1e-4
+    line = adapter.read_points(poly.getAssociatedCloud())
+    assert np.abs(line - res.centerline.points).max() < 1e-4
     rows = [line.split() for line in capsys.readouterr().out.splitlines()]
     start = next(i for i, r in enumerate(rows) if r[:3] == ["chainage", "width", "height"])
     table = rows[start + 1 : start + 1 + len(res.slices)]

@@ -225,7 +225,7 @@ def test_make_point_cloud_inherits_shift(pycc, adapter):
 
 def test_copy_shift_without_copy_method(pycc, adapter, monkeypatch):
     ref = _entity(pycc, _survey_points(10), scale=4.0)
-    monkeypatch.delattr(pycc.ccHObject, "copyGlobalShiftAndScale")
+    monkeypatch.delattr(pycc.ccShiftedObject, "copyGlobalShiftAndScale")
     dst = pycc.ccPointCloud("x")
     adapter.copy_shift_and_scale(dst, ref)
     shift, scale = adapter.shift_and_scale(dst)
@@ -239,7 +239,7 @@ def test_make_polyline(pycc, adapter):
     assert poly.indices == list(range(7)) and not poly.closed and poly.getName() == "axis"
     assert poly.cloud is vertices and vertices.getName() == "axis vertices"
     assert poly.colour.g == 255 and poly.colours_shown
-    assert np.abs(adapter.read_points(poly.cloud) - pts).max() < 1e-5
+    assert np.abs(adapter.read_points(poly.getAssociatedCloud()) - pts).max() < 1e-5
     shift, _ = adapter.shift_and_scale(poly)
     assert np.allclose(shift, SHIFT)
 

@@ -25,7 +25,15 @@ from .worker import Outcome, ProgressBridge
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TunnelDefPlugin", "detect_deformation", "extract_centerline", "register_to_reference"]
+__all__ = [
+    "TunnelDefPlugin",
+    "detect_deformation",
+    "extract_centerline",
+    "register_to_reference",
+    "detect_on",
+    "centerline_on",
+    "register_on",
+]
 
 
 def _console(text: str) -> None:
@@ -54,13 +62,16 @@ def _run_with_progress(
     dialog.setInfo("working... (Cancel stops at the next step)")
     bridge = ProgressBridge(dialog)
     dialog.start()
-    cc.freezeUI(True)
+    freeze = getattr(cc, "freezeUI", None)  # the command-line instance has no UI to freeze
+    if freeze is not None:
+        freeze(True)
     try:
         outcome = adapter.run_in_worker(
             func, *args, bridge=bridge, process_events=process_events, **kwargs
         )
     finally:
-        cc.freezeUI(False)
+        if freeze is not None:
+            freeze(False)
         dialog.stop()
     return outcome, bridge
 
@@ -77,14 +88,18 @@ def _report_failure(action: str, outcome: Outcome) -> None:
         _error(f"{action} failed: {type(outcome.error).__name__}: {outcome.error}")
 
 
-def _selected_clouds(count: int, action: str) -> list[Any] | None:
-    """The selected clouds if there are ``count`` and the runtime is sound, else None (after
-    a one-line message)."""
+def _runtime_ok(action: str) -> bool:
+    """False (after a one-line message) if this runtime hands out wrong arrays."""
     try:
         adapter.check_runtime(pycc)
     except adapter.BrokenRuntimeError as exc:
         _error(f"{action}: {exc}")
-        return None
+        return False
+    return True
+
+
+def _selected_clouds(count: int, action: str) -> list[Any] | None:
+    """The selected clouds if there are ``count``, else None (after a one-line message)."""
     cc = pycc.GetInstance()
     if not hasattr(cc, "getSelectedEntities"):  # -PYTHON_SCRIPT mode: no window, no selection
         _error(
@@ -101,7 +116,11 @@ def _selected_clouds(count: int, action: str) -> list[Any] | None:
 
 
 def _add(entities: list[Any]) -> None:
+    """Add entities to the DB tree (GUI); in command-line mode keep them alive instead."""
     cc = pycc.GetInstance()
+    if not hasattr(cc, "addToDB"):
+        _keep(entities)
+        return
     for e in entities:
         cc.addToDB(e)
     cc.updateUI()
@@ -129,6 +148,19 @@ def detect_deformation(params: DetectParams | None = None, *, ask: bool = True) 
         if params is None:
             return None
     ref_e, cmp_e = (clouds[1], clouds[0]) if params.swap else (clouds[0], clouds[1])
+    return detect_on(ref_e, cmp_e, params)
+
+
+def detect_on(ref_e: Any, cmp_e: Any, params: DetectParams | None = None) -> Any:
+    """*Detect deformation* on two given clouds (``ref_e`` = reference), no dialog.
+
+    What the menu action does after the selection and the dialog; usable from scripts,
+    including ``-PYTHON_SCRIPT`` mode. Returns the :class:`adapter.DetectEntities` or None
+    (after a one-line message)."""
+    action = "Detect deformation"
+    if not _runtime_ok(action):
+        return None
+    params = params or DetectParams.from_config()
     config = adapter.config_from_params(params)
     ref, cmp = adapter.entity_to_cloud(ref_e), adapter.entity_to_cloud(cmp_e)
     _console(
@@ -167,11 +199,15 @@ def extract_centerline(*, config: Any = None) -> Any:
 
     Per-slice width/height are printed as a table in the console. Returns the polyline or
     None."""
+    clouds = _selected_clouds(1, "Extract centerline")
+    return None if clouds is None else centerline_on(clouds[0], config=config)
+
+
+def centerline_on(entity: Any, *, config: Any = None) -> Any:
+    """*Extract centerline* on a given cloud (no selection needed); the polyline or None."""
     action = "Extract centerline"
-    clouds = _selected_clouds(1, action)
-    if clouds is None:
+    if not _runtime_ok(action):
         return None
-    entity = clouds[0]
     cloud = adapter.entity_to_cloud(entity)
     outcome, _ = _run_with_progress(action, adapter.compute_centerline, cloud, config)
     if not outcome.ok:
@@ -192,11 +228,15 @@ def register_to_reference(*, config: Any = None) -> Any:
 
     Adds a registered copy of the second and prints the 4 x 4 matrix. Returns the copy or
     None."""
+    clouds = _selected_clouds(2, "Register to reference")
+    return None if clouds is None else register_on(clouds[0], clouds[1], config=config)
+
+
+def register_on(ref_e: Any, cmp_e: Any, *, config: Any = None) -> Any:
+    """*Register to reference* on two given clouds (``ref_e`` = reference); the copy or None."""
     action = "Register to reference"
-    clouds = _selected_clouds(2, action)
-    if clouds is None:
+    if not _runtime_ok(action):
         return None
-    ref_e, cmp_e = clouds
     ref, cmp = adapter.entity_to_cloud(ref_e), adapter.entity_to_cloud(cmp_e)
     outcome, _ = _run_with_progress(action, adapter.compute_register, ref, cmp, config)
     if not outcome.ok:

@@ -1,0 +1,362 @@
+"""Drives tunneldef's real menu inside CloudCompare's window (under Xvfb) for the tests.
+
+Loaded by CloudCompare's Python runtime at start-up as a plugin (entry point
+``cloudcompare.plugins``, written by the test into a temporary ``.dist-info``), when
+``TDCC_GUI=1``. On the main thread it opens the clouds listed in ``TDCC_CLOUDS`` (names
+containing ``ref`` and ``cmp``; any global-shift dialog is accepted), waits for the plugin's
+three menu actions, then, through
+PySide2 (Debian's ``python3-pyside2``; the harness needs it, the plugin does not):
+
+1. selects reference then compared in the DB tree and triggers *Detect deformation* (the
+   plugin's dialog is accepted as it comes);
+2. selects the reference and triggers *Extract centerline*;
+3. selects both and triggers *Register to reference*;
+4. triggers *Detect deformation* again and presses Cancel on the progress dialog after
+   ``TDCC_CANCEL_AFTER`` seconds (default 1);
+5. triggers *Detect deformation* with "Also move the original" ticked in the dialog;
+6. optionally (``TDCC_SCREENSHOT=path.png``) shows the compared cloud's colours and grabs the
+   screen with ImageMagick's ``import -window root``.
+
+What landed in CloudCompare goes to ``$TDCC_OUT/report.json`` and ``$TDCC_OUT/arrays.npz``;
+then CloudCompare exits (``os._exit``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+import traceback
+
+import numpy as np
+import pycc
+
+OUT = os.environ.get("TDCC_OUT", ".")
+ACTIONS = ("Detect deformation", "Extract centerline", "Register to reference")
+REPORT: dict = {"steps": {}, "errors": [], "modals": []}
+ARRAYS: dict[str, np.ndarray] = {}
+
+
+class HarnessPlugin(pycc.PythonPluginInterface):
+    """A do-nothing plugin: the entry point only serves to import this module at start-up (one
+    action: with none, CloudCompare 2.13 crashes while building the plugin menu)."""
+
+    def __init__(self) -> None:
+        pycc.PythonPluginInterface.__init__(self)
+
+    def getActions(self) -> list:  # noqa: N802 - the runtime's API name
+        return [pycc.Action(name="(test harness)", target=_nothing)]
+
+
+def _nothing() -> None:
+    """The harness plugin's menu entry does nothing."""
+
+
+def save() -> None:
+    with open(os.path.join(OUT, "report.json"), "w", encoding="utf-8") as fh:
+        json.dump(REPORT, fh, indent=1, default=str)
+
+
+def _walk(obj, out):
+    for i in range(obj.getChildrenNumber()):
+        child = obj.getChild(i)
+        out.append(child)
+        _walk(child, out)
+    return out
+
+
+def entities() -> list:
+    return _walk(pycc.GetInstance().dbRootObject(), [])
+
+
+def sf_array(entity, name):
+    idx = entity.getScalarFieldIndexByName(name)
+    if idx is None or int(idx) < 0:
+        return None
+    return np.asarray(entity.getScalarField(int(idx)).toArray(), dtype=np.float64)
+
+
+def sf_names(entity) -> list[str]:
+    return [entity.getScalarFieldName(i) for i in range(entity.getNumberOfScalarFields())]
+
+
+class Driver:
+    """A state machine on CloudCompare's main thread, stepped by QTimer callbacks."""
+
+    def __init__(self) -> None:
+        from PySide2 import QtCore, QtWidgets
+
+        self.QtCore, self.QtWidgets = QtCore, QtWidgets
+        self.app = QtWidgets.QApplication
+        self.t0 = time.time()
+        self.cancel_at: float | None = None
+        self.tick_move = False
+        self.keep: list = []
+        self.queue: list = []
+
+    # ---- Qt helpers
+    def later(self, ms: int, fn) -> None:
+        def run() -> None:
+            try:
+                fn()
+            except Exception:  # noqa: BLE001 - recorded, then finish
+                REPORT["errors"].append(traceback.format_exc())
+                self.finish()
+
+        self.QtCore.QTimer.singleShot(ms, run)
+
+    def menu_actions(self) -> dict:
+        found = {}
+        for w in self.app.allWidgets():
+            if isinstance(w, self.QtWidgets.QMenu):
+                try:
+                    for a in w.actions():
+                        if a.text() in ACTIONS:
+                            found.setdefault(a.text(), (w.title(), a))
+                except RuntimeError:  # a menu deleted meanwhile
+                    continue
+        return found
+
+    def menu_path(self) -> list[str]:
+        """Titles from the menu bar down to the tunneldef submenu holding the actions."""
+        _, action = self.acts[ACTIONS[0]]
+        path: list[str] = []
+        menu = action.associatedWidgets()[0] if action.associatedWidgets() else None
+        while isinstance(menu, self.QtWidgets.QMenu):
+            path.insert(0, menu.title().replace("&", ""))
+            parent_action = menu.menuAction()
+            owners = [w for w in parent_action.associatedWidgets() if w is not menu]
+            menu = owners[0] if owners else None
+        return path
+
+    def console(self) -> list[str]:
+        lines = []
+        for w in self.app.allWidgets():
+            if isinstance(w, self.QtWidgets.QListWidget) and w.objectName() == "consoleWidget":
+                lines += [w.item(i).text() for i in range(w.count())]
+        return lines
+
+    def select(self, ents: list) -> None:
+        """Select ``ents`` in this order in the DB tree, as Ctrl+clicks would."""
+        QtCore, QtWidgets = self.QtCore, self.QtWidgets
+        tree = next(
+            w for w in self.app.allWidgets()
+            if isinstance(w, QtWidgets.QTreeView) and w.objectName() == "dbTreeView"
+        )
+        model, sm = tree.model(), tree.selectionModel()
+
+        def walk(parent):
+            for r in range(model.rowCount(parent)):
+                idx = model.index(r, 0, parent)
+                yield idx
+                yield from walk(idx)
+
+        by_name = {}
+        for idx in walk(QtCore.QModelIndex()):
+            by_name.setdefault(idx.data(), idx)
+        sm.clearSelection()
+        flags = QtCore.QItemSelectionModel.Select | QtCore.QItemSelectionModel.Rows
+        for e in ents:
+            sm.select(by_name[e.getName()], flags)
+
+    def watch(self) -> None:
+        """Answer the plugin's dialog and message boxes; press Cancel when asked to."""
+        QtWidgets = self.QtWidgets
+        w = self.app.activeModalWidget()
+        if w is not None and not isinstance(w, QtWidgets.QProgressDialog):
+            rec = {"t": round(time.time() - self.t0, 1), "title": w.windowTitle()}
+            if isinstance(w, QtWidgets.QMessageBox):
+                rec["text"] = w.text()
+            if w.windowTitle() == "tunneldef: detect deformation" and self.tick_move:
+                for cb in w.findChildren(QtWidgets.QCheckBox):
+                    cb.setChecked(True)
+                rec["ticked"] = "move the original"
+            REPORT["modals"].append(rec)
+            w.accept() if hasattr(w, "accept") else w.close()
+        if self.cancel_at is not None and time.time() > self.cancel_at:
+            for tw in self.app.topLevelWidgets():
+                if isinstance(tw, QtWidgets.QProgressDialog) and tw.isVisible():
+                    tw.cancel()
+                    REPORT["cancel_pressed"] = round(time.time() - self.t0, 1)
+                    self.cancel_at = None
+        self.QtCore.QTimer.singleShot(200, self.watch)
+
+    # ---- sequence
+    def start(self) -> None:
+        self.watch()
+        self.later(300, self.load)
+
+    def load(self) -> None:
+        """Open the clouds of ``TDCC_CLOUDS`` as File > Open would (after start-up: clouds given
+        on CloudCompare's command line load while the runtime is still starting, and a global
+        shift dialog at that moment crashes CloudCompare 2.13)."""
+        cc = pycc.GetInstance()
+        loaded = []
+        for path in filter(None, os.environ.get("TDCC_CLOUDS", "").split(os.pathsep)):
+            params = pycc.FileIOFilter.LoadParameters()
+            for name, value in (("alwaysDisplayLoadDialog", False),):
+                if hasattr(params, name):
+                    setattr(params, name, value)
+            obj = cc.loadFile(path, params)
+            loaded.append(None if obj is None else obj.getName())
+        REPORT["loaded"] = loaded
+        self.later(300, self.wait_ready)
+
+    def wait_ready(self) -> None:
+        clouds = [e for e in entities() if isinstance(e, pycc.ccPointCloud)]
+        self.acts = self.menu_actions()
+        named = {k: next((c for c in clouds if k in c.getName().lower()), None)
+                 for k in ("ref", "cmp")}
+        if (None in named.values() or len(self.acts) < 3) and time.time() - self.t0 < 120:
+            self.later(300, self.wait_ready)
+            return
+        if None in named.values() or len(self.acts) < 3:
+            raise RuntimeError(f"clouds {named} or actions {list(self.acts)} missing")
+        self.ref, self.cmp = named["ref"], named["cmp"]
+        REPORT["menu_path"] = self.menu_path()
+        REPORT["shifts"] = {k: [c.getGlobalShift().x, c.getGlobalShift().y,
+                                c.getGlobalShift().z] for k, c in named.items()}
+        self.queue = [
+            ("detect", [self.ref, self.cmp], ACTIONS[0]),
+            ("centerline", [self.ref], ACTIONS[1]),
+            ("register", [self.ref, self.cmp], ACTIONS[2]),
+            ("cancel", [self.ref, self.cmp], ACTIONS[0]),
+            ("move", [self.ref, self.cmp], ACTIONS[0]),
+        ]
+        self.next()
+
+    def next(self) -> None:
+        if not self.queue:
+            self.finish()
+            return
+        step, sel, name = self.queue.pop(0)
+        self.before = {
+            "ids": {e.getUniqueID() for e in entities()},
+            "console": len(self.console()),
+            "cmp_fields": sf_names(self.cmp),
+            "cmp_deformation": sf_array(self.cmp, "deformation"),
+        }
+        self.tick_move = step == "move"
+        self.select(sel)
+        self.later(300, lambda: self.trigger(step, name))
+
+    def trigger(self, step: str, name: str) -> None:
+        selected = [e.getName() for e in pycc.GetInstance().getSelectedEntities()]
+        _, action = self.acts[name]
+        t_start = time.time()
+        if step == "cancel":
+            self.cancel_at = t_start + float(os.environ.get("TDCC_CANCEL_AFTER", "1.0"))
+
+        def done(*_args) -> None:  # runs after the runtime's own slot returned
+            action.triggered.disconnect(done)
+            rec = {"selected": selected, "seconds": round(time.time() - t_start, 2)}
+            self.later(300, lambda: self.check(step, rec))
+
+        action.triggered.connect(done)
+        self.keep.append(done)
+        self.QtCore.QMetaObject.invokeMethod(action, "trigger", self.QtCore.Qt.QueuedConnection)
+
+    def new_entities(self) -> list:
+        return [e for e in entities() if e.getUniqueID() not in self.before["ids"]]
+
+    def check(self, step: str, rec: dict) -> None:
+        from tunneldef_cloudcompare import adapter
+
+        rec["console"] = self.console()[self.before["console"]:]
+        new = self.new_entities()
+        rec["new"] = [f"{type(e).__name__}: {e.getName()}" for e in new]
+        if step in ("detect", "move"):
+            rec["cmp_fields"] = sf_names(self.cmp)
+            for f in rec["cmp_fields"]:
+                ARRAYS[f"{step}:field:{f}"] = sf_array(self.cmp, f)
+            ARRAYS[f"{step}:cmp_xyz"] = adapter.read_points(self.cmp)
+            reg = [e for e in new if e.getName().endswith("(registered)")]
+            if reg:
+                ARRAYS[f"{step}:registered"] = adapter.read_points(reg[0])
+            for e in new:
+                if isinstance(e, pycc.ccPolyline):
+                    key = e.getName().split()[0]  # "reference" / "compared"
+                    ARRAYS[f"{step}:{key}_centerline"] = adapter.read_points(
+                        e.getAssociatedCloud()
+                    )
+            sf = self.cmp.getScalarField(self.cmp.getCurrentDisplayedScalarFieldIndex())
+            rec["displayed"] = sf.getName()
+            rec["symmetrical"] = bool(sf.symmetricalScale())
+            lim = float(sf.saturationRange().stop())
+            rec["saturation_stop"] = lim
+            rec["rgb"] = {f"{v:+.1f}": [int(c.r), int(c.g), int(c.b)] for v, c in (
+                (v, sf.getColor(v * lim)) for v in (-1.0, -0.5, 0.0, 0.5, 1.0))}
+        elif step == "centerline":
+            poly = [e for e in new if isinstance(e, pycc.ccPolyline)]
+            if poly:
+                ARRAYS["centerline"] = adapter.read_points(poly[0].getAssociatedCloud())
+        elif step == "register":
+            reg = [e for e in new if isinstance(e, pycc.ccPointCloud)]
+            if reg:
+                ARRAYS["register:copy"] = adapter.read_points(reg[0])
+        elif step == "cancel":
+            rec["cmp_fields_before"] = self.before["cmp_fields"]
+            rec["cmp_fields_after"] = sf_names(self.cmp)
+            after = sf_array(self.cmp, "deformation")
+            rec["deformation_unchanged"] = bool(
+                np.array_equal(after, self.before["cmp_deformation"], equal_nan=True)
+            )
+        REPORT["steps"][step] = rec
+        save()
+        if step == "move" and os.environ.get("TDCC_SCREENSHOT"):
+            self.later(200, self.screenshot)
+            return
+        self.next()
+
+    def screenshot(self) -> None:
+        """Show the compared cloud's deformation colours and grab the screen."""
+        self.ref.setEnabled(False) if hasattr(self.ref, "setEnabled") else None
+        for e in entities():
+            if isinstance(e, pycc.ccPointCloud) and e is not self.cmp and hasattr(e, "setEnabled"):
+                e.setEnabled(False)
+        self.select([self.cmp])
+        cc = pycc.GetInstance()
+        cc.redrawAll()
+        self.later(1500, self._grab)
+
+    def _grab(self) -> None:
+        path = os.environ["TDCC_SCREENSHOT"]
+        r = subprocess.run(["import", "-window", "root", path], capture_output=True, text=True)
+        REPORT["screenshot"] = {"path": path, "rc": r.returncode, "stderr": r.stderr[-500:]}
+        self.next()
+
+    def finish(self) -> None:
+        try:
+            REPORT["console"] = self.console()
+            np.savez(os.path.join(OUT, "arrays.npz"), **ARRAYS)
+            REPORT["finished"] = True
+        except Exception:  # noqa: BLE001
+            REPORT["errors"].append(traceback.format_exc())
+        finally:
+            save()
+            os._exit(0)
+
+
+_KEEP: list = []
+
+
+def _bootstrap() -> None:
+    """Plugins are imported off the main thread: hop onto it with a queued call."""
+    from PySide2 import QtCore
+
+    class Boot(QtCore.QObject):
+        @QtCore.Slot()
+        def go(self) -> None:
+            driver = Driver()
+            _KEEP.append(driver)
+            driver.later(1000, driver.start)
+
+    boot = Boot()
+    boot.moveToThread(QtCore.QCoreApplication.instance().thread())
+    _KEEP.append(boot)
+    QtCore.QMetaObject.invokeMethod(boot, "go", QtCore.Qt.QueuedConnection)
+
+
+if os.environ.get("TDCC_GUI"):
+    _bootstrap()
