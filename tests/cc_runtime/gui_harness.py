@@ -7,14 +7,12 @@ containing ``ref`` and ``cmp``; any global-shift dialog is accepted), waits for 
 three menu actions, then, through
 PySide2 (Debian's ``python3-pyside2``; the harness needs it, the plugin does not):
 
-1. selects reference then compared in the DB tree and triggers *Detect deformation* (the
-   plugin's dialog is accepted as it comes);
-2. selects the reference and triggers *Extract centerline*;
-3. selects both and triggers *Register to reference*;
+1. selects the reference in the DB tree and triggers *Extract centerline*;
+2. selects reference then compared and triggers *Register to reference*;
+3. triggers *Detect deformation*, ticking "Also move the original" in the plugin's dialog;
 4. triggers *Detect deformation* again and presses Cancel on the progress dialog after
    ``TDCC_CANCEL_AFTER`` seconds (default 1);
-5. triggers *Detect deformation* with "Also move the original" ticked in the dialog;
-6. optionally (``TDCC_SCREENSHOT=path.png``) shows the compared cloud's colours and grabs the
+5. optionally (``TDCC_SCREENSHOT=path.png``) shows the compared cloud's colours and grabs the
    screen with ImageMagick's ``import -window root``.
 
 What landed in CloudCompare goes to ``$TDCC_OUT/report.json`` and ``$TDCC_OUT/arrays.npz``;
@@ -218,11 +216,10 @@ class Driver:
         REPORT["shifts"] = {k: [c.getGlobalShift().x, c.getGlobalShift().y,
                                 c.getGlobalShift().z] for k, c in named.items()}
         self.queue = [
-            ("detect", [self.ref, self.cmp], ACTIONS[0]),
             ("centerline", [self.ref], ACTIONS[1]),
             ("register", [self.ref, self.cmp], ACTIONS[2]),
+            ("detect", [self.ref, self.cmp], ACTIONS[0]),
             ("cancel", [self.ref, self.cmp], ACTIONS[0]),
-            ("move", [self.ref, self.cmp], ACTIONS[0]),
         ]
         self.next()
 
@@ -237,7 +234,7 @@ class Driver:
             "cmp_fields": sf_names(self.cmp),
             "cmp_deformation": sf_array(self.cmp, "deformation"),
         }
-        self.tick_move = step == "move"
+        self.tick_move = step == "detect"
         self.select(sel)
         self.later(300, lambda: self.trigger(step, name))
 
@@ -251,7 +248,8 @@ class Driver:
         def done(*_args) -> None:  # runs after the runtime's own slot returned
             action.triggered.disconnect(done)
             rec = {"selected": selected, "seconds": round(time.time() - t_start, 2)}
-            self.later(300, lambda: self.check(step, rec))
+            # CloudCompare's console widget shows new lines on a timer: wait for them
+            self.later(1200, lambda: self.check(step, rec))
 
         action.triggered.connect(done)
         self.keep.append(done)
@@ -266,7 +264,7 @@ class Driver:
         rec["console"] = self.console()[self.before["console"]:]
         new = self.new_entities()
         rec["new"] = [f"{type(e).__name__}: {e.getName()}" for e in new]
-        if step in ("detect", "move"):
+        if step == "detect":
             rec["cmp_fields"] = sf_names(self.cmp)
             for f in rec["cmp_fields"]:
                 ARRAYS[f"{step}:field:{f}"] = sf_array(self.cmp, f)
@@ -304,21 +302,29 @@ class Driver:
             )
         REPORT["steps"][step] = rec
         save()
-        if step == "move" and os.environ.get("TDCC_SCREENSHOT"):
+        if step == "cancel" and os.environ.get("TDCC_SCREENSHOT"):
             self.later(200, self.screenshot)
             return
         self.next()
 
     def screenshot(self) -> None:
-        """Show the compared cloud's deformation colours and grab the screen."""
-        self.ref.setEnabled(False) if hasattr(self.ref, "setEnabled") else None
+        """Show only the compared cloud with its deformation colours (window maximised, an
+        oblique view) and grab the screen."""
+        keep = self.cmp.getName()
         for e in entities():
-            if isinstance(e, pycc.ccPointCloud) and e is not self.cmp and hasattr(e, "setEnabled"):
+            if e.getName() != keep and hasattr(e, "setEnabled") and not e.getChildrenNumber():
                 e.setEnabled(False)
+        for w in self.app.topLevelWidgets():
+            if isinstance(w, self.QtWidgets.QMainWindow):
+                w.showMaximized()
+                wanted = os.environ.get("TDCC_VIEW_ACTIONS", "actionSetIsoView1").split(",")
+                for a in w.findChildren(self.QtWidgets.QAction):
+                    if a.objectName() in wanted:
+                        a.trigger()
+                        REPORT.setdefault("view_actions", []).append(a.objectName())
         self.select([self.cmp])
-        cc = pycc.GetInstance()
-        cc.redrawAll()
-        self.later(1500, self._grab)
+        pycc.GetInstance().redrawAll()
+        self.later(2500, self._grab)
 
     def _grab(self) -> None:
         path = os.environ["TDCC_SCREENSHOT"]

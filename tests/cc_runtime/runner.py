@@ -199,14 +199,21 @@ def find_runtime() -> Runtime:
 SURVEY_OFFSET = (512000.0, 5611000.0, 310.0)
 
 
-def write_pair(out_dir: Path, *, seed: int = 0, length: float = 20.0, density: float = 60.0):
+def write_pair(
+    out_dir: Path,
+    *,
+    seed: int = 0,
+    length: float = 20.0,
+    density: float = 60.0,
+    deformations: tuple | None = None,
+):
     """A small synthetic pair (about 22 k points each at the defaults) in survey coordinates,
     written as ``ref.ply`` and ``cmp.ply``; returns ``(ref_path, cmp_path)``.
 
     Coordinates are rounded to a 2**-10 m grid, so CloudCompare's float32 local coordinates
     (after its global shift) hold them exactly and the core sees the same numbers in both
     hosts. A roof sag of 50 mm at chainage 10 m; a side chamber so the position along the axis
-    is determined.
+    is determined. ``deformations`` (``tunneldef.synth.DeformationSpec``) replace the sag.
     """
     import numpy as np
 
@@ -217,7 +224,8 @@ def write_pair(out_dir: Path, *, seed: int = 0, length: float = 20.0, density: f
     pair = make_pair(
         PairSpec(
             tunnel=TunnelSpec(length=length, chamber=True, density=density, outlier_fraction=0.0),
-            deformations=(DeformationSpec(kind="roof_sag", chainage=10.0, amplitude=0.05),),
+            deformations=deformations
+            or (DeformationSpec(kind="roof_sag", chainage=min(10.0, length / 2), amplitude=0.05),),
             translation=(1.5, -0.8, 0.3),
             seed=seed,
         )

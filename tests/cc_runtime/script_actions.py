@@ -12,7 +12,9 @@ entities) and saves what landed in CloudCompare for the tests to compare with th
 Environment: ``TDCC_ACTIONS`` (comma list of ``centerline,register,detect``; default all),
 ``TDCC_REPEAT`` (runs of each action in this process; default 1), ``TDCC_WORKER``
 (``plugin``, the default, or ``runinthread``: the compute step through ``pycc.RunInThread``,
-as older versions of the plugin did, to count its crashes).
+as older versions of the plugin did, to count its crashes), ``TDCC_NO_ARRAYS=1`` (save no
+arrays: for benchmarks on large clouds). Each action's record holds the process's resident
+memory (``VmRSS``) and its peak so far (``VmHWM``) before and after it, GB.
 """
 
 from __future__ import annotations
@@ -27,6 +29,16 @@ import numpy as np
 OUT = os.environ.get("TDCC_OUT", ".")
 REPORT: dict = {"actions": [], "errors": []}
 ARRAYS: dict[str, np.ndarray] = {}
+
+
+def memory() -> dict[str, float]:
+    """This process's resident memory now and at its peak, GB (Linux ``/proc``)."""
+    out = {}
+    with open("/proc/self/status", encoding="ascii") as fh:
+        for line in fh:
+            if line.startswith(("VmRSS:", "VmHWM:")):
+                out[line.split(":")[0]] = int(line.split()[1]) / 1024**2
+    return out
 
 
 def save() -> None:
@@ -87,20 +99,24 @@ def main() -> None:
         "cmp": adapter.shift_and_scale(cmp_e)[0].tolist(),
     }
     REPORT["points_strides"] = list(np.asarray(ref_e.points()).strides)
-    ARRAYS["ref_xyz"] = adapter.read_points(ref_e)
-    ARRAYS["cmp_xyz"] = adapter.read_points(cmp_e)
+    REPORT["sizes"] = [int(ref_e.size()), int(cmp_e.size())]
+    REPORT["memory_loaded"] = memory()
+    if not os.environ.get("TDCC_NO_ARRAYS"):
+        ARRAYS["ref_xyz"] = adapter.read_points(ref_e)
+        ARRAYS["cmp_xyz"] = adapter.read_points(cmp_e)
     actions = os.environ.get("TDCC_ACTIONS", "centerline,register,detect").split(",")
     repeat = int(os.environ.get("TDCC_REPEAT", "1"))
     for i in range(repeat):
         for action in actions:
             t0 = time.perf_counter()
-            rec: dict = {"action": action, "run": i}
+            rec: dict = {"action": action, "run": i, "memory_before": memory()}
             try:
                 rec.update(ACTIONS[action](plugin, adapter, ref_e, cmp_e, last=i == repeat - 1))
             except Exception:  # noqa: BLE001 - recorded for the test to show
                 rec["error"] = traceback.format_exc()
                 REPORT["errors"].append(rec["error"])
             rec["seconds"] = round(time.perf_counter() - t0, 3)
+            rec["memory_after"] = memory()
             REPORT["actions"].append(rec)
             save()
     np.savez(os.path.join(OUT, "arrays.npz"), **ARRAYS)
@@ -112,7 +128,7 @@ def do_centerline(plugin, adapter, ref_e, cmp_e, *, last: bool) -> dict:
     poly = plugin.centerline_on(ref_e)
     if poly is None:
         raise RuntimeError("centerline_on returned None")
-    if last:
+    if last and not os.environ.get("TDCC_NO_ARRAYS"):
         ARRAYS["centerline"] = adapter.read_points(poly.getAssociatedCloud())
     return {"name": poly.getName(), "size": int(poly.size())}
 
@@ -121,23 +137,23 @@ def do_register(plugin, adapter, ref_e, cmp_e, *, last: bool) -> dict:
     copy = plugin.register_on(ref_e, cmp_e)
     if copy is None:
         raise RuntimeError("register_on returned None")
-    if last:
+    if last and not os.environ.get("TDCC_NO_ARRAYS"):
         ARRAYS["registered_copy"] = adapter.read_points(copy)
     return {"name": copy.getName(), "size": int(copy.size())}
 
 
 def do_detect(plugin, adapter, ref_e, cmp_e, *, last: bool) -> dict:
-    params = adapter.DetectParams.from_config(move_original=last)
+    params = adapter.DetectParams.from_config()
     made = plugin.detect_on(ref_e, cmp_e, params)
     if made is None:
         raise RuntimeError("detect_on returned None")
     rec = {"limit": made.limit, "colours": made.colours, "legend": made.legend()}
-    if last:
+    if last and not os.environ.get("TDCC_NO_ARRAYS"):
         names = [cmp_e.getScalarFieldName(i) for i in range(cmp_e.getNumberOfScalarFields())]
         rec["cmp_fields"] = names
         for name in names:
             ARRAYS[f"field:{name}"] = sf_array(cmp_e, name)
-        ARRAYS["cmp_moved"] = adapter.read_points(cmp_e)
+        ARRAYS["cmp_after"] = adapter.read_points(cmp_e)
         ARRAYS["registered"] = adapter.read_points(made.registered)
         ARRAYS["registered_deformation"] = sf_array(made.registered, "deformation")
         ARRAYS["ref_centerline"] = adapter.read_points(made.ref_centerline.getAssociatedCloud())

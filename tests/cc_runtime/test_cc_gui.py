@@ -1,7 +1,8 @@
 """The three menu actions in CloudCompare's real window (under Xvfb), driven through the menu
-*Plugins > Python Plugin > Plugins > tunneldef* by ``gui_harness``: detect, extract centreline,
-register, Cancel during a detection, and "Also move the original", on a survey-coordinate pair
-opened with CloudCompare's global shift; compared with the core on the same files."""
+*Plugins > Python Plugin > Plugins > tunneldef* by ``gui_harness``: detect (with "Also move the
+original" ticked), extract centreline, register, and Cancel during a detection, on a
+survey-coordinate pair opened with CloudCompare's global shift; compared with the core on the
+same files."""
 
 from __future__ import annotations
 
@@ -38,9 +39,9 @@ def test_menu_runs_and_path(gui):
     assert gui.report.get("finished"), gui.log
     assert gui.report["errors"] == [], gui.report["errors"]
     assert gui.report["menu_path"] == ["Plugins", "Python Plugin", "Plugins", "tunneldef"]
-    assert set(gui.report["steps"]) == {"detect", "centerline", "register", "cancel", "move"}
+    assert set(gui.report["steps"]) == {"detect", "centerline", "register", "cancel"}
     titles = [m["title"] for m in gui.report["modals"]]
-    assert titles.count("tunneldef: detect deformation") == 3  # the plugin's dialog each time
+    assert titles.count("tunneldef: detect deformation") == 2  # the plugin's dialog each time
     assert not [m for m in gui.report["modals"] if "text" in m], "an error box was shown"
 
 
@@ -50,7 +51,6 @@ def test_global_shift_and_detect_fields_equal_the_core(gui, core):
     step = gui.report["steps"]["detect"]
     assert step["selected"] == ["ref - Cloud", "cmp - Cloud"]  # click order: reference first
     assert_fields_equal_core(_fields(gui.arrays, "detect"), core.result)
-    assert_xyz(gui.arrays["detect:cmp_xyz"], core.cmp.xyz, "original left in place", tol=1e-9)
     assert_xyz(gui.arrays["detect:registered"], core.result.cloud.xyz, "registered copy")
 
 
@@ -78,10 +78,10 @@ def test_cancel_changes_nothing(gui):
     assert "cancel_pressed" in gui.report
     assert step["new"] == [] and step["deformation_unchanged"]
     assert step["cmp_fields_after"] == step["cmp_fields_before"]
-    assert step["seconds"] < 8.0  # stopped early, not a full run
+    assert step["seconds"] < 0.5 * gui.report["steps"]["detect"]["seconds"]  # stopped early
     assert any("cancelled; nothing was changed" in line for line in gui.report["console"])
 
 
 def test_move_the_original(gui, core):
-    assert_xyz(gui.arrays["move:cmp_xyz"], core.result.cloud.xyz, "moved", tol=MOVED_TOL)
-    assert_fields_equal_core(_fields(gui.arrays, "move"), core.result)
+    assert any(m.get("ticked") == "move the original" for m in gui.report["modals"])
+    assert_xyz(gui.arrays["detect:cmp_xyz"], core.result.cloud.xyz, "moved", tol=MOVED_TOL)
