@@ -5,6 +5,7 @@ Usage
 -----
     python benchmarks/plugin_runtime.py crashes [--runs 50] [--worker plugin|runinthread]
     python benchmarks/plugin_runtime.py large [--points 16e6] [--length 350]
+    python benchmarks/plugin_runtime.py screenshot docs/img/cloudcompare_plugin.png
 
 ``crashes``: ``--runs`` CloudCompare processes (``-PYTHON_SCRIPT``, offscreen), each running
 the plugin's three jobs (Extract centerline, Register to reference, Detect deformation) on a
@@ -18,6 +19,10 @@ given to *Detect deformation* (``plugin.detect_on``), then the same files throug
 alone (``tunneldef.pipeline.detect`` in a plain Python process). Prints wall time and peak
 resident memory of the whole CloudCompare process and of the core-alone process, and
 CloudCompare's memory once the clouds are loaded.
+
+``screenshot``: CloudCompare's window (Xvfb) after the menu actions on a 30 m synthetic pair
+with an 80 mm roof sag and a 60 mm wall bulge, the compared cloud shown alone with its
+``deformation`` colours (ImageMagick's ``import``).
 
 Needs the build described in ``tests/cc_runtime/runner.py`` (found or unpacked from
 ``../shared/cloudcompare-python/``).
@@ -42,18 +47,21 @@ from cc_runtime.runner import HERE, find_runtime, write_pair  # noqa: E402
 JOBS = ("centerline", "register", "detect")
 
 
-def crashes(runs: int, worker: str, keep: Path | None = None) -> dict[str, dict[str, float]]:
-    """Run the three jobs in ``runs`` CloudCompare processes; per-job counts and mean time."""
+def crashes(
+    runs: int, worker: str, jobs: tuple[str, ...] = JOBS, keep: Path | None = None
+) -> dict[str, dict[str, float]]:
+    """Run ``jobs`` in ``runs`` CloudCompare processes; per-job counts and mean time."""
     rt = find_runtime()
     top = Path(tempfile.mkdtemp(prefix="tdcc-crash-")) if keep is None else keep
     ref, cmp = write_pair(top / "pair")
     stats = {j: {"runs": 0, "completed": 0, "crashed": 0, "errors": 0, "seconds": 0.0}
-             for j in JOBS}
+             for j in jobs}
     exit_codes = []
     for i in range(runs):
         work = top / f"run{i:03d}"
         work.mkdir(parents=True, exist_ok=True)
-        env = {"TDCC_OUT": str(work), "TDCC_WORKER": worker, "TDCC_NO_ARRAYS": "1"}
+        env = {"TDCC_OUT": str(work), "TDCC_WORKER": worker, "TDCC_NO_ARRAYS": "1",
+               "TDCC_ACTIONS": ",".join(jobs)}
         proc = rt.run_script(HERE / "script_actions.py", [ref, cmp], workdir=work,
                              env_extra=env, timeout=600)
         exit_codes.append(proc.returncode)
@@ -61,14 +69,14 @@ def crashes(runs: int, worker: str, keep: Path | None = None) -> dict[str, dict[
         report = json.loads(report_path.read_text()) if report_path.is_file() else {}
         done = {a["action"]: a for a in report.get("actions", [])}
         finished = bool(report.get("finished")) and proc.returncode == 0
-        for job in JOBS:
+        for job in jobs:
             s = stats[job]
             if job in done:
                 s["runs"] += 1
                 s["completed"] += 1
                 s["errors"] += int("error" in done[job])
                 s["seconds"] += done[job]["seconds"]
-            elif not finished and job == next(j for j in JOBS if j not in done):
+            elif not finished and job == next(j for j in jobs if j not in done):
                 s["runs"] += 1
                 s["crashed"] += 1  # died inside this job
         tail = "" if finished else f" exit {proc.returncode}: {proc.stdout[-300:]!r}"
@@ -134,22 +142,47 @@ def large(points: float, length: float, workdir: Path) -> dict[str, float]:
     return out
 
 
+def screenshot(png: Path) -> Path:
+    """The window after the menu actions, the compared cloud coloured by ``deformation``."""
+    from tunneldef.synth import DeformationSpec
+
+    rt = find_runtime()
+    work = Path(tempfile.mkdtemp(prefix="tdcc-shot-"))
+    deformations = (
+        DeformationSpec(kind="roof_sag", chainage=9.0, amplitude=0.08, length=5.0, width=3.0),
+        DeformationSpec(kind="wall_bulge", chainage=21.0, amplitude=0.06, length=4.0),
+    )
+    ref, cmp = write_pair(work / "pair", length=30.0, density=150.0, deformations=deformations)
+    env = {"TDCC_SCREENSHOT": str(png.resolve())}
+    proc = rt.run_gui([ref, cmp], workdir=work, env_extra=env, timeout=900)
+    report = json.loads((work / "report.json").read_text())
+    if not png.is_file() or report.get("errors"):
+        raise SystemExit(f"no screenshot ({proc.returncode}): {report.get('errors')}")
+    return png
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("crashes", help="repeated runs of the three jobs; count crashes")
     c.add_argument("--runs", type=int, default=50)
     c.add_argument("--worker", choices=["plugin", "runinthread"], default="plugin")
+    c.add_argument("--jobs", default=",".join(JOBS), help="comma list (default: all three)")
     c.add_argument("--max-crashes", type=int, default=None,
                    help="exit 1 when more processes crashed (CI: 0)")
     g = sub.add_parser("large", help="detect on two large clouds inside CloudCompare")
     g.add_argument("--points", type=float, default=16e6, help="points per epoch")
     g.add_argument("--length", type=float, default=350.0, help="tunnel length, m")
     g.add_argument("--workdir", type=Path, default=None)
+    h = sub.add_parser("screenshot", help="PNG of CloudCompare's window showing the colours")
+    h.add_argument("png", type=Path)
     args = ap.parse_args(argv)
 
+    if args.cmd == "screenshot":
+        print(screenshot(args.png))
+        return 0
     if args.cmd == "crashes":
-        res = crashes(args.runs, args.worker)
+        res = crashes(args.runs, args.worker, tuple(args.jobs.split(",")))
         print(f"\nworker: {args.worker}; {args.runs} CloudCompare processes")
         print("| job | runs | completed | crashed | errors | mean s |")
         print("|---|---|---|---|---|---|")

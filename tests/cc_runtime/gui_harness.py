@@ -308,23 +308,41 @@ class Driver:
         self.next()
 
     def screenshot(self) -> None:
-        """Show only the compared cloud with its deformation colours (window maximised, an
-        oblique view) and grab the screen."""
-        keep = self.cmp.getName()
-        for e in entities():
-            if e.getName() != keep and hasattr(e, "setEnabled") and not e.getChildrenNumber():
-                e.setEnabled(False)
+        """Show the compared cloud (and the centrelines) alone with its deformation colours,
+        CloudCompare's window over the whole screen, an oblique view; then grab the screen."""
+        QtCore, QtWidgets = self.QtCore, self.QtWidgets
+        tree = next(
+            w for w in self.app.allWidgets()
+            if isinstance(w, QtWidgets.QTreeView) and w.objectName() == "dbTreeView"
+        )
+        model = tree.model()
+        keep = {self.cmp.getName(), "reference centreline", "compared centreline"}
+
+        def walk(parent):
+            for r in range(model.rowCount(parent)):
+                idx = model.index(r, 0, parent)
+                yield idx
+                yield from walk(idx)
+
+        for idx in list(walk(QtCore.QModelIndex())):
+            if model.rowCount(idx) == 0 and idx.data() not in keep:
+                model.setData(idx, QtCore.Qt.Unchecked, QtCore.Qt.CheckStateRole)
+        wanted = os.environ.get("TDCC_VIEW_ACTIONS", "actionSetViewIso1,actionZoomAndCenter").split(",")
         for w in self.app.topLevelWidgets():
-            if isinstance(w, self.QtWidgets.QMainWindow):
-                w.showMaximized()
-                wanted = os.environ.get("TDCC_VIEW_ACTIONS", "actionSetIsoView1").split(",")
-                for a in w.findChildren(self.QtWidgets.QAction):
+            if isinstance(w, QtWidgets.QMainWindow) and "CloudCompare" in w.windowTitle():
+                screen = self.app.primaryScreen().geometry()
+                w.setGeometry(screen)
+                names = [a.objectName() for a in w.findChildren(QtWidgets.QAction)]
+                REPORT["view_action_names"] = [n for n in names if "View" in n or "Zoom" in n]
+                for a in w.findChildren(QtWidgets.QAction):
                     if a.objectName() in wanted:
                         a.trigger()
                         REPORT.setdefault("view_actions", []).append(a.objectName())
+        if hasattr(self.cmp, "setPointSize"):
+            self.cmp.setPointSize(int(os.environ.get("TDCC_POINT_SIZE", "3")))
         self.select([self.cmp])
         pycc.GetInstance().redrawAll()
-        self.later(2500, self._grab)
+        self.later(6000, self._grab)  # after CloudCompare's "New size" overlay has gone
 
     def _grab(self) -> None:
         path = os.environ["TDCC_SCREENSHOT"]
