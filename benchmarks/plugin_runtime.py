@@ -66,7 +66,10 @@ def crashes(
                              env_extra=env, timeout=600)
         exit_codes.append(proc.returncode)
         report_path = work / "report.json"
-        report = json.loads(report_path.read_text()) if report_path.is_file() else {}
+        try:
+            report = json.loads(report_path.read_text())
+        except (OSError, ValueError):  # none: died before the first job ended
+            report = {}
         done = {a["action"]: a for a in report.get("actions", [])}
         finished = bool(report.get("finished")) and proc.returncode == 0
         for job in jobs:

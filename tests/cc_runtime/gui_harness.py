@@ -327,7 +327,8 @@ class Driver:
         for idx in list(walk(QtCore.QModelIndex())):
             if model.rowCount(idx) == 0 and idx.data() not in keep:
                 model.setData(idx, QtCore.Qt.Unchecked, QtCore.Qt.CheckStateRole)
-        wanted = os.environ.get("TDCC_VIEW_ACTIONS", "actionSetViewIso1,actionZoomAndCenter").split(",")
+        views = os.environ.get("TDCC_VIEW_ACTIONS", "actionSetViewIso1,actionZoomAndCenter")
+        wanted = views.split(",")
         for w in self.app.topLevelWidgets():
             if isinstance(w, QtWidgets.QMainWindow) and "CloudCompare" in w.windowTitle():
                 screen = self.app.primaryScreen().geometry()

@@ -43,8 +43,10 @@ def memory() -> dict[str, float]:
 
 def save() -> None:
     """Write the report (after every step, so a crash leaves what was done)."""
-    with open(os.path.join(OUT, "report.json"), "w", encoding="utf-8") as fh:
+    path = os.path.join(OUT, "report.json")
+    with open(path + ".tmp", "w", encoding="utf-8") as fh:
         json.dump(REPORT, fh, indent=1, default=str)
+    os.replace(path + ".tmp", path)  # a crash never leaves half a report
 
 
 def sf_array(entity, name: str) -> np.ndarray | None:
