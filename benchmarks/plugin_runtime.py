@@ -65,6 +65,7 @@ def crashes(
         proc = rt.run_script(HERE / "script_actions.py", [ref, cmp], workdir=work,
                              env_extra=env, timeout=600)
         exit_codes.append(proc.returncode)
+        (work / "cloudcompare.log").write_text(proc.stdout + proc.stderr, encoding="utf-8")
         report_path = work / "report.json"
         try:
             report = json.loads(report_path.read_text())
@@ -82,7 +83,8 @@ def crashes(
             elif not finished and job == next(j for j in jobs if j not in done):
                 s["runs"] += 1
                 s["crashed"] += 1  # died inside this job
-        tail = "" if finished else f" exit {proc.returncode}: {proc.stdout[-300:]!r}"
+        fatal = [ln for ln in (proc.stdout + proc.stderr).splitlines() if "Fatal" in ln]
+        tail = "" if finished else f" (exit {proc.returncode}) {fatal[:1]}"
         print(f"run {i + 1}/{runs}: {'ok' if finished else 'CRASHED'}{tail}", flush=True)
     for s in stats.values():
         s["seconds"] = s["seconds"] / max(s["completed"], 1)
