@@ -29,6 +29,7 @@ import traceback
 
 import numpy as np
 import pycc
+from inside import sf_array
 
 OUT = os.environ.get("TDCC_OUT", ".")
 ACTIONS = ("Detect deformation", "Extract centerline", "Register to reference")
@@ -66,13 +67,6 @@ def _walk(obj, out):
 
 def entities() -> list:
     return _walk(pycc.GetInstance().dbRootObject(), [])
-
-
-def sf_array(entity, name):
-    idx = entity.getScalarFieldIndexByName(name)
-    if idx is None or int(idx) < 0:
-        return None
-    return np.asarray(entity.getScalarField(int(idx)).toArray(), dtype=np.float64)
 
 
 def sf_names(entity) -> list[str]:
@@ -135,23 +129,30 @@ class Driver:
                 lines += [w.item(i).text() for i in range(w.count())]
         return lines
 
-    def select(self, ents: list) -> None:
-        """Select ``ents`` in this order in the DB tree, as Ctrl+clicks would."""
-        QtCore, QtWidgets = self.QtCore, self.QtWidgets
+    def tree_rows(self) -> tuple:
+        """CloudCompare's DB tree view and the model index of every row in it."""
         tree = next(
             w for w in self.app.allWidgets()
-            if isinstance(w, QtWidgets.QTreeView) and w.objectName() == "dbTreeView"
+            if isinstance(w, self.QtWidgets.QTreeView) and w.objectName() == "dbTreeView"
         )
-        model, sm = tree.model(), tree.selectionModel()
+        model, rows = tree.model(), []
 
-        def walk(parent):
+        def walk(parent) -> None:
             for r in range(model.rowCount(parent)):
                 idx = model.index(r, 0, parent)
-                yield idx
-                yield from walk(idx)
+                rows.append(idx)
+                walk(idx)
 
+        walk(self.QtCore.QModelIndex())
+        return tree, rows
+
+    def select(self, ents: list) -> None:
+        """Select ``ents`` in this order in the DB tree, as Ctrl+clicks would."""
+        QtCore = self.QtCore
+        tree, rows = self.tree_rows()
+        sm = tree.selectionModel()
         by_name = {}
-        for idx in walk(QtCore.QModelIndex()):
+        for idx in rows:
             by_name.setdefault(idx.data(), idx)
         sm.clearSelection()
         flags = QtCore.QItemSelectionModel.Select | QtCore.QItemSelectionModel.Rows
@@ -311,20 +312,10 @@ class Driver:
         """Show the compared cloud (and the centrelines) alone with its deformation colours,
         CloudCompare's window over the whole screen, an oblique view; then grab the screen."""
         QtCore, QtWidgets = self.QtCore, self.QtWidgets
-        tree = next(
-            w for w in self.app.allWidgets()
-            if isinstance(w, QtWidgets.QTreeView) and w.objectName() == "dbTreeView"
-        )
+        tree, rows = self.tree_rows()
         model = tree.model()
         keep = {self.cmp.getName(), "reference centreline", "compared centreline"}
-
-        def walk(parent):
-            for r in range(model.rowCount(parent)):
-                idx = model.index(r, 0, parent)
-                yield idx
-                yield from walk(idx)
-
-        for idx in list(walk(QtCore.QModelIndex())):
+        for idx in rows:
             if model.rowCount(idx) == 0 and idx.data() not in keep:
                 model.setData(idx, QtCore.Qt.Unchecked, QtCore.Qt.CheckStateRole)
         views = os.environ.get("TDCC_VIEW_ACTIONS", "actionSetViewIso1,actionZoomAndCenter")

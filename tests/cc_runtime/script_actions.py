@@ -25,6 +25,7 @@ import time
 import traceback
 
 import numpy as np
+from inside import sf_array
 
 OUT = os.environ.get("TDCC_OUT", ".")
 REPORT: dict = {"actions": [], "errors": []}
@@ -47,14 +48,6 @@ def save() -> None:
     with open(path + ".tmp", "w", encoding="utf-8") as fh:
         json.dump(REPORT, fh, indent=1, default=str)
     os.replace(path + ".tmp", path)  # a crash never leaves half a report
-
-
-def sf_array(entity, name: str) -> np.ndarray | None:
-    """A scalar field's values, float64, or None if the entity has no such field."""
-    idx = entity.getScalarFieldIndexByName(name)
-    if idx is None or int(idx) < 0:
-        return None
-    return np.asarray(entity.getScalarField(int(idx)).toArray(), dtype=np.float64)
 
 
 def colours_of(entity, name: str, values: list[float]) -> dict:
