@@ -27,8 +27,8 @@ class ProgressBridge:
 
     Called from the worker thread it only records the stage and fraction, and raises
     :class:`tunneldef.progress.Cancelled` once Cancel was seen; :meth:`pump` (main thread)
-    shows them in the dialog (stage name as its text, fraction as the bar) and reads its
-    Cancel button. Called from the main thread (no
+    moves the dialog's bar and reads its Cancel button (not its text: ``setInfo`` runs a
+    nested event loop in CloudCompare 2.13). Called from the main thread (no
     worker) it does both at once. Stage names are kept in ``stages`` for the log.
     """
 
@@ -59,12 +59,9 @@ class ProgressBridge:
         if dlg is None or not self.stages:
             return
         now = (self.stages[-1], self.last_fraction)
-        if now == self._shown:
-            return
-        if self._shown is None or self._shown[0] != now[0]:
-            dlg.setInfo(now[0])  # the stage's name, on the main thread
-        self._shown = now
-        dlg.update(float(np.clip(100.0 * now[1], 0.0, 100.0)))
+        if now != self._shown:
+            self._shown = now
+            dlg.update(float(np.clip(100.0 * now[1], 0.0, 100.0)))
 
     def __call__(self, stage: str, fraction: float) -> None:
         from tunneldef.progress import Cancelled

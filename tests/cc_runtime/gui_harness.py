@@ -86,6 +86,7 @@ class Driver:
         self.tick_move = False
         self.keep: list = []
         self.queue: list = []
+        self._widgets: dict = {}
 
     # ---- Qt helpers
     def later(self, ms: int, fn) -> None:
@@ -98,16 +99,34 @@ class Driver:
 
         self.QtCore.QTimer.singleShot(ms, run)
 
+    def scan(self, keep, top_level: bool = False) -> list:
+        """The widgets (all, or top-level) for which ``keep(widget)`` is true; the PySide2
+        wrappers of all the others are invalidated (see :meth:`watch`)."""
+        import shiboken2
+
+        widgets = self.app.topLevelWidgets() if top_level else self.app.allWidgets()
+        cached = [id(w) for w in self._widgets.values()]
+        out = []
+        for w in widgets:
+            if keep(w):
+                out.append(w)
+            elif id(w) not in cached:
+                shiboken2.invalidate(w)
+        return out
+
     def menu_actions(self) -> dict:
+        """The plugin's three QActions: ``{text: (menu title, action)}``."""
+
+        def ours(w) -> bool:
+            return isinstance(w, self.QtWidgets.QMenu) and any(
+                a.text() in ACTIONS for a in w.actions()
+            )
+
         found = {}
-        for w in self.app.allWidgets():
-            if isinstance(w, self.QtWidgets.QMenu):
-                try:
-                    for a in w.actions():
-                        if a.text() in ACTIONS:
-                            found.setdefault(a.text(), (w.title(), a))
-                except RuntimeError:  # a menu deleted meanwhile
-                    continue
+        for menu in self.scan(ours):
+            for a in menu.actions():
+                if a.text() in ACTIONS:
+                    found.setdefault(a.text(), (menu.title(), a))
         return found
 
     def menu_path(self) -> list[str]:
@@ -123,18 +142,22 @@ class Driver:
         return path
 
     def console(self) -> list[str]:
-        lines = []
-        for w in self.app.allWidgets():
-            if isinstance(w, self.QtWidgets.QListWidget) and w.objectName() == "consoleWidget":
-                lines += [w.item(i).text() for i in range(w.count())]
-        return lines
+        w = self.widget(self.QtWidgets.QListWidget, "consoleWidget")
+        return [w.item(i).text() for i in range(w.count())]
+
+    def widget(self, cls, name: str):
+        """A long-lived widget of CloudCompare's window by class and object name (cached, so
+        that ``allWidgets()`` is not wrapped again while transient widgets come and go)."""
+        key = (cls.__name__, name)
+        if key not in self._widgets:
+            self._widgets[key] = self.scan(
+                lambda w: isinstance(w, cls) and w.objectName() == name
+            )[0]
+        return self._widgets[key]
 
     def tree_rows(self) -> tuple:
         """CloudCompare's DB tree view and the model index of every row in it."""
-        tree = next(
-            w for w in self.app.allWidgets()
-            if isinstance(w, self.QtWidgets.QTreeView) and w.objectName() == "dbTreeView"
-        )
+        tree = self.widget(self.QtWidgets.QTreeView, "dbTreeView")
         model, rows = tree.model(), []
 
         def walk(parent) -> None:
@@ -160,25 +183,41 @@ class Driver:
             sm.select(by_name[e.getName()], flags)
 
     def watch(self) -> None:
-        """Answer the plugin's dialog and message boxes; press Cancel when asked to."""
+        """Answer the plugin's dialog and message boxes; press Cancel when asked to.
+
+        Widgets that CloudCompare creates and deletes itself (its progress dialog, its
+        global-shift dialog) are wrapped by PySide2 only here, and their wrappers are
+        invalidated at once: PySide2 does not see C++ deletions of objects it did not create,
+        and a stale wrapper whose address is reused crashes CloudCompare."""
+        import shiboken2
+
         QtWidgets = self.QtWidgets
+        if self.cancel_at is not None and time.time() > self.cancel_at:
+            shown = self.scan(
+                lambda w: isinstance(w, QtWidgets.QProgressDialog) and w.isVisible(),
+                top_level=True,
+            )
+            for w in shown:
+                w.cancel()
+                REPORT["cancel_pressed"] = round(time.time() - self.t0, 1)
+                self.cancel_at = None
+                shiboken2.invalidate(w)
         w = self.app.activeModalWidget()
-        if w is not None and not isinstance(w, QtWidgets.QProgressDialog):
-            rec = {"t": round(time.time() - self.t0, 1), "title": w.windowTitle()}
+        if isinstance(w, QtWidgets.QProgressDialog):
+            shiboken2.invalidate(w)
+        elif w is not None:
+            title = w.windowTitle()
+            rec = {"t": round(time.time() - self.t0, 1), "title": title}
             if isinstance(w, QtWidgets.QMessageBox):
                 rec["text"] = w.text()
-            if w.windowTitle() == "tunneldef: detect deformation" and self.tick_move:
+            if title == "tunneldef: detect deformation" and self.tick_move:
                 for cb in w.findChildren(QtWidgets.QCheckBox):
                     cb.setChecked(True)
                 rec["ticked"] = "move the original"
             REPORT["modals"].append(rec)
             w.accept() if hasattr(w, "accept") else w.close()
-        if self.cancel_at is not None and time.time() > self.cancel_at:
-            for tw in self.app.topLevelWidgets():
-                if isinstance(tw, QtWidgets.QProgressDialog) and tw.isVisible():
-                    tw.cancel()
-                    REPORT["cancel_pressed"] = round(time.time() - self.t0, 1)
-                    self.cancel_at = None
+            if not title.startswith("tunneldef"):  # CloudCompare's own dialog
+                shiboken2.invalidate(w)
         self.QtCore.QTimer.singleShot(200, self.watch)
 
     # ---- sequence
@@ -320,8 +359,9 @@ class Driver:
                 model.setData(idx, QtCore.Qt.Unchecked, QtCore.Qt.CheckStateRole)
         views = os.environ.get("TDCC_VIEW_ACTIONS", "actionSetViewIso1,actionZoomAndCenter")
         wanted = views.split(",")
-        for w in self.app.topLevelWidgets():
-            if isinstance(w, QtWidgets.QMainWindow) and "CloudCompare" in w.windowTitle():
+        main = self.scan(lambda w: isinstance(w, QtWidgets.QMainWindow), top_level=True)
+        for w in main:
+            if "CloudCompare" in w.windowTitle():
                 screen = self.app.primaryScreen().geometry()
                 w.setGeometry(screen)
                 names = [a.objectName() for a in w.findChildren(QtWidgets.QAction)]

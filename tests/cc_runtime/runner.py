@@ -54,7 +54,7 @@ class Runtime:
         env["LD_LIBRARY_PATH"] = str(self.prefix / "lib" / "cloudcompare")
         env["XDG_CONFIG_HOME"] = str(config_dir)  # CloudCompare's settings, kept out of ~
         runtime_dir = config_dir / "runtime"
-        runtime_dir.mkdir(mode=0o700, exist_ok=True)
+        runtime_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
         env["XDG_RUNTIME_DIR"] = str(runtime_dir)
         env.pop("PYTHONHOME", None)
         return env
