@@ -27,8 +27,9 @@ class ProgressBridge:
 
     Called from the worker thread it only records the stage and fraction, and raises
     :class:`tunneldef.progress.Cancelled` once Cancel was seen; :meth:`pump` (main thread)
-    moves the dialog's bar and reads its Cancel button (not its text: ``setInfo`` runs a
-    nested event loop in CloudCompare 2.13). Called from the main thread (no
+    moves the dialog's bar and reads its Cancel button. (CloudCompare 2.13's ``update`` and
+    ``setInfo`` call ``QCoreApplication::processEvents`` themselves: on the main thread only,
+    and the text is set once, before the run.) Called from the main thread (no
     worker) it does both at once. Stage names are kept in ``stages`` for the log.
     """
 
