@@ -244,7 +244,9 @@ def test_detect_cancel_changes_nothing(pycc, plugin, monkeypatch, pair, capsys):
     assert plugin.detect_deformation(adapter.DetectParams(), ask=False) is None
     assert len(slow.calls) == 1  # the core ran on the worker and stopped at Cancel
     assert cmp_e.getNumberOfScalarFields() == 0 and pycc.GetInstance().db == []
-    assert "cancelled; nothing was changed" in capsys.readouterr().out
+    assert "Detect deformation: cancelled during 'deformation'; nothing was changed" in (
+        capsys.readouterr().out
+    )
     assert pycc.GetInstance().frozen == [True, False]  # UI unfrozen after cancel
     assert pycc.PROCESSED_EVENTS >= 2  # the GUI was kept alive while waiting
 

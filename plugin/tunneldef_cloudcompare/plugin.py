@@ -80,7 +80,7 @@ def _report_failure(action: str, outcome: Outcome) -> None:
     from tunneldef.errors import TunnelDefError
 
     if outcome.cancelled:
-        _console(f"[tunneldef] {action}: cancelled; nothing was changed")
+        _console(f"[tunneldef] {action}: {outcome.error}; nothing was changed")
     elif isinstance(outcome.error, TunnelDefError):
         _error(f"{action}: {outcome.error}")
     else:
