@@ -47,7 +47,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
+from tunneldef_cloudcompare.colours import color_scale_xml, symmetric_limit
 
 #: PLY vertex properties CloudCompare does not load as scalar fields.
 _STANDARD_PROPERTIES = {
@@ -87,36 +87,9 @@ def _ply_header(path: str | os.PathLike) -> list[str]:
     return names
 
 
-def color_scale_xml(limit: float, *, name: str = "tunneldef deformation") -> str:
-    """A CloudCompare colour-scale XML: absolute Red>White>Blue from -limit to +limit (m).
-
-    Red at -limit (into the tunnel), white at 0, blue at +limit (outward).
-    """
-    return f"""<?xml version="1.0" encoding="UTF-8"?>
-<CloudCompare>
-    <ColorScale version="1">
-        <Properties>
-            <name>{name}</name>
-            <uuid>{{5b7c2f4e-1d0a-4f3e-9a61-7e2d8c3b9f01}}</uuid>
-            <absolute>1</absolute>
-            <minValue>{-limit:.9g}</minValue>
-            <range>{2 * limit:.9g}</range>
-        </Properties>
-        <Data>
-            <step r="255" g="0" b="0" pos="0"/>
-            <step r="255" g="255" b="255" pos="0.5"/>
-            <step r="0" g="0" b="255" pos="1"/>
-        </Data>
-    </ColorScale>
-</CloudCompare>
-"""
-
-
-def symmetric_limit(values: np.ndarray, threshold: float = 0.0) -> float:
-    """98th percentile of |values|, at least ``threshold`` and 1 mm (same rule as the plugin)."""
-    v = np.abs(np.asarray(values, dtype=np.float64))
-    v = v[np.isfinite(v)]
-    return max(float(np.percentile(v, 98)) if v.size else 0.0, float(threshold), 1e-3)
+#: Identity of the absolute scale written for the command line (the plugin's relative scale
+#: has its own, :data:`tunneldef_cloudcompare.colours.SCALE_UUID`).
+ABSOLUTE_SCALE_UUID = "{5b7c2f4e-1d0a-4f3e-9a61-7e2d8c3b9f01}"
 
 
 def run_detect(
@@ -171,10 +144,11 @@ def run_cloudcompare(
     if limit is None:
         from tunneldef.io import read
 
-        limit = symmetric_limit(read(ply).fields["deformation"], threshold)
+        limit = symmetric_limit(read(ply).fields["deformation"], threshold=threshold)
     stem = ply.with_suffix("")
     scale = Path(f"{stem}_scale.xml")
-    scale.write_text(color_scale_xml(limit), encoding="utf-8")
+    xml = color_scale_xml(name="tunneldef deformation", uuid=ABSOLUTE_SCALE_UUID, limit=limit)
+    scale.write_text(xml, encoding="utf-8")
     cmd = cloudcompare_command(
         cc, ply, sf_index=scalar_field_index(ply, "deformation"), scale_xml=scale
     )

@@ -68,6 +68,11 @@ def run_command_line(cli: Any, argv: list[str]) -> int:
         k: getattr(args, k) for k in ("threshold", "k", "method") if getattr(args, k) is not None
     }
     params = adapter.DetectParams.from_config(**overrides)
+    try:
+        adapter.check_runtime()
+    except adapter.BrokenRuntimeError as exc:
+        print(f"[tunneldef] error: {exc}")
+        return 2
     ref_e, cmp_e = descs[0].pc, descs[1].pc
     ref, cmp = adapter.entity_to_cloud(ref_e), adapter.entity_to_cloud(cmp_e)
     print(

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tunneldef_cloudcompare.colours import symmetric_limit
 
 _GREY = np.array([0.6, 0.6, 0.6])
 #: Diverging colour map: red = negative (into the tunnel), blue = positive (report figures).
@@ -48,12 +49,6 @@ def load(
         np.asarray(cloud.fields[field], dtype=np.float64),
         None if ch is None else np.asarray(ch, dtype=np.float64),
     )
-
-
-def symmetric_limit(values: np.ndarray, threshold: float = 0.0) -> float:
-    """98th percentile of |values|, at least ``threshold`` and 1 mm."""
-    v = np.abs(values[np.isfinite(values)])
-    return max(float(np.percentile(v, 98)) if v.size else 0.0, float(threshold), 1e-3)
 
 
 def colours(values: np.ndarray, limit: float) -> np.ndarray:

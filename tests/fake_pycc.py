@@ -15,9 +15,13 @@ against the documented API only. Behaviour copied from the bindings:
 * ``getGlobalShift()`` returns a vector with ``.x .y .z``; ``getGlobalScale()`` a float.
 * ``ccGLMatrix().asArray()`` is a writable (4, 4) float32 view of column-major storage.
 
-Switches for the known runtime quirks: ``BROKEN_POINTS`` (``points()`` returns N copies of
-the first row, runtime issues #124/#142/#152) and ``SCALE_GETTER_BUG`` (``getGlobalScale``
-bound to the setter in some builds).
+Switches for the known runtime quirks: ``STRIDE0_ARRAYS`` (a runtime built with pybind11 <
+2.12 under numpy 2: every array it hands out has stride 0, so ``points()`` repeats point 0,
+writes into ``ccGLMatrix.asArray()`` are lost and ``ScalarField.toArray()`` repeats the last
+value) and ``SCALE_GETTER_BUG`` (``getGlobalScale`` bound to the setter in some builds).
+
+``tests/test_plugin_runtime_api.py`` checks, inside the real CloudCompare, that every public
+name faked here exists there with a compatible signature.
 """
 
 from __future__ import annotations
@@ -30,16 +34,21 @@ import numpy as np
 PointCoordinateType = np.float32
 ScalarType = np.float32
 
-BROKEN_POINTS = False
+STRIDE0_ARRAYS = False
 SCALE_GETTER_BUG = False
 
 
-class CCVector3d:
+def _stride0(array: np.ndarray, row: int = 0) -> np.ndarray:
+    """What a stride-0 runtime hands out: every row (or element) is ``array[row]``."""
+    return np.broadcast_to(array[row], array.shape)
+
+
+class _Vector3d:
+    """What ``getGlobalShift()``/``getPoint()`` return (``cccorelib._Vector3d``/``CCVector3``
+    in the real runtime, not in ``pycc``): ``.x .y .z``."""
+
     def __init__(self, x: float = 0.0, y: float = 0.0, z: float = 0.0) -> None:
         self.x, self.y, self.z = float(x), float(y), float(z)
-
-
-CCVector3 = CCVector3d
 
 
 class Rgb:
@@ -134,6 +143,8 @@ class ccScalarField:  # noqa: N801
         return self._max
 
     def toArray(self) -> np.ndarray:  # noqa: N802
+        if STRIDE0_ARRAYS and self._values.size:
+            return _stride0(self._values, -1)
         return self._values.copy()
 
     def setColorScale(self, scale: ccColorScale.Shared) -> None:  # noqa: N802
@@ -167,12 +178,15 @@ class ccHObject:  # noqa: N801
     def setName(self, name: str) -> None:  # noqa: N802
         self._name = str(name)
 
-    # ccShiftedObject
-    def getGlobalShift(self) -> CCVector3d:  # noqa: N802
-        return CCVector3d(*self._shift)
 
-    def setGlobalShift(self, x: float, y: float, z: float) -> None:  # noqa: N802
-        self._shift = np.array([x, y, z], dtype=np.float64)
+class ccShiftedObject(ccHObject):  # noqa: N801
+    """Entities with a global shift and scale (clouds, polylines)."""
+
+    def getGlobalShift(self) -> _Vector3d:  # noqa: N802
+        return _Vector3d(*self._shift)
+
+    def setGlobalShift(self, x_: float, y: float, z: float) -> None:  # noqa: N802
+        self._shift = np.array([x_, y, z], dtype=np.float64)
 
     def setGlobalScale(self, scale: float) -> None:  # noqa: N802
         self._scale = float(scale)
@@ -190,9 +204,9 @@ class ccHObject:  # noqa: N801
     def isShifted(self) -> bool:  # noqa: N802
         return bool(np.any(self._shift != 0) or self._scale != 1.0)
 
-    def copyGlobalShiftAndScale(self, other: Any) -> None:  # noqa: N802
-        self._shift = other._shift.copy()
-        self._scale = other._scale
+    def copyGlobalShiftAndScale(self, s: Any) -> None:  # noqa: N802
+        self._shift = s._shift.copy()
+        self._scale = s._scale
 
 
 class ccGLMatrix:  # noqa: N801
@@ -200,6 +214,8 @@ class ccGLMatrix:  # noqa: N801
         self._data = np.eye(4, dtype=np.float32).ravel(order="F").copy()
 
     def asArray(self) -> np.ndarray:  # noqa: N802
+        if STRIDE0_ARRAYS:  # a writable array whose writes never reach the matrix
+            return np.repeat(self._data.reshape(4, 4)[:1], 4, axis=0)
         return self._data.reshape(4, 4)  # row i of this view = column i of the matrix
 
     def matrix(self) -> np.ndarray:
@@ -207,7 +223,7 @@ class ccGLMatrix:  # noqa: N801
         return self._data.reshape(4, 4).T.astype(np.float64)
 
 
-class ccPointCloud(ccHObject):  # noqa: N801
+class ccPointCloud(ccShiftedObject):  # noqa: N801
     def __init__(self, *args: Any) -> None:
         if len(args) == 3:
             super().__init__("")
@@ -228,14 +244,14 @@ class ccPointCloud(ccHObject):  # noqa: N801
 
     def points(self) -> np.ndarray:
         view = self._xyz.view()
-        if BROKEN_POINTS and len(view):
-            view = np.broadcast_to(self._xyz[0], self._xyz.shape)
+        if STRIDE0_ARRAYS and len(view):
+            view = _stride0(self._xyz)
         view = view.view()
         view.flags.writeable = False
         return view
 
-    def getPoint(self, index: int) -> CCVector3d:  # noqa: N802
-        return CCVector3d(*self._xyz[int(index)])
+    def getPoint(self, index: int) -> _Vector3d:  # noqa: N802
+        return _Vector3d(*self._xyz[int(index)])
 
     def addScalarField(self, name: str, values: Any = None) -> int:  # noqa: N802
         if self.getScalarFieldIndexByName(name) >= 0:
@@ -287,20 +303,23 @@ class ccPointCloud(ccHObject):  # noqa: N801
         self._xyz = xyz.astype(np.float32)
 
 
-class ccPolyline(ccHObject):  # noqa: N801
-    def __init__(self, cloud: ccPointCloud) -> None:
+class ccPolyline(ccShiftedObject):  # noqa: N801
+    def __init__(self, associatedCloud: ccPointCloud) -> None:  # noqa: N803
         super().__init__("")
-        self.cloud = cloud
+        self.cloud = associatedCloud
         self.indices: list[int] = []
         self.closed = True
         self.colour: Rgb | None = None
         self.colours_shown = False
 
-    def addPointIndex(self, first: int, last: int | None = None) -> None:  # noqa: N802
-        if last is None:
-            self.indices.append(int(first))
+    def addPointIndex(self, firstIndex: int, lastIndex: int | None = None) -> None:  # noqa: N802, N803
+        if lastIndex is None:
+            self.indices.append(int(firstIndex))
         else:
-            self.indices.extend(range(int(first), int(last)))
+            self.indices.extend(range(int(firstIndex), int(lastIndex)))
+
+    def getAssociatedCloud(self) -> ccPointCloud:  # noqa: N802
+        return self.cloud
 
     def size(self) -> int:
         return len(self.indices)
@@ -329,11 +348,11 @@ class ccProgressDialog:  # noqa: N801
     def stop(self) -> None:
         self.stopped = True
 
-    def setMethodTitle(self, title: str) -> None:  # noqa: N802
-        self.title = title
+    def setMethodTitle(self, methodTitle: str) -> None:  # noqa: N802, N803
+        self.title = methodTitle
 
-    def setInfo(self, info: str) -> None:  # noqa: N802
-        self.info = info
+    def setInfo(self, infoStr: str) -> None:  # noqa: N802, N803
+        self.info = infoStr
 
     def update(self, percent: float) -> None:
         self.values.append(float(percent))
@@ -342,14 +361,23 @@ class ccProgressDialog:  # noqa: N801
         return self.cancel_after is not None and len(self.values) >= self.cancel_after
 
 
-def RunInThread(func: Any, *args: Any, **kwargs: Any) -> Any:  # noqa: N802
+def ProcessEvents() -> None:  # noqa: N802
+    """The real one runs ``QCoreApplication::processEvents()``; counted here."""
+    global PROCESSED_EVENTS
+    PROCESSED_EVENTS += 1
+
+
+PROCESSED_EVENTS = 0
+
+
+def RunInThread(callable: Any, *args: Any, **kwargs: Any) -> Any:  # noqa: N802, A002
     """The real one runs ``func`` in a QtConcurrent thread and waits; same result here."""
     import threading
 
     out: dict[str, Any] = {}
 
     def run() -> None:
-        out["value"] = func(*args, **kwargs)
+        out["value"] = callable(*args, **kwargs)
 
     t = threading.Thread(target=run)
     t.start()
@@ -428,8 +456,8 @@ class ccLog:  # noqa: N801
     messages: list[str] = []
 
     @staticmethod
-    def Print(text: str) -> None:  # noqa: N802
-        ccLog.messages.append(str(text))
+    def Print(message: str) -> None:  # noqa: N802
+        ccLog.messages.append(str(message))
 
 
 def install() -> types.ModuleType:
@@ -437,8 +465,12 @@ def install() -> types.ModuleType:
     import sys
 
     mod = sys.modules[__name__]
-    mod.BROKEN_POINTS = False
+    mod.STRIDE0_ARRAYS = False
     mod.SCALE_GETTER_BUG = False
+    mod.PROCESSED_EVENTS = 0
+    from tunneldef_cloudcompare.runtime import reset_runtime_check
+
+    reset_runtime_check()
     mod._GUI = ccPythonInstance()
     mod._CMDLINE = None
     mod.ccColorScalesManager._instance = None

@@ -216,7 +216,7 @@ def test_scalar_field_index_and_colour_scale(tmp_path):
     assert batch.scalar_field_index(ply, "deformation") == 1
     with pytest.raises(KeyError, match="no vertex property 'nope'"):
         batch.scalar_field_index(ply, "nope")
-    root = ET.fromstring(batch.color_scale_xml(0.025))
+    root = ET.fromstring(batch.color_scale_xml(limit=0.025))
     props = root.find("ColorScale/Properties")
     assert float(props.findtext("minValue")) == -0.025 and float(props.findtext("range")) == 0.05
     steps = [(s.get("r"), s.get("g"), s.get("b"), float(s.get("pos"))) for s in root.iter("step")]

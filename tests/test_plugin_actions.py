@@ -216,7 +216,20 @@ def test_detect_move_original(pycc, plugin, core, pair):
     assert np.abs(adapter.read_points(cmp_e) - pair.cmp_in_ref).max() < 1e-4
 
 
-def test_detect_cancel_changes_nothing(pycc, plugin, core, pair, monkeypatch, capsys):
+class SlowCore(FakeCore):
+    """A core that keeps reporting progress (a long computation) until it is cancelled."""
+
+    def detect(self, ref, cmp, config=None, *, progress=None):
+        import time
+
+        self.calls.append(SimpleNamespace(ref=ref, cmp=cmp, config=config))
+        for i in range(500):  # at most 5 s
+            progress("deformation", i / 500)
+            time.sleep(0.01)
+        raise AssertionError("the worker was never cancelled")
+
+
+def test_detect_cancel_changes_nothing(pycc, plugin, monkeypatch, pair, capsys):
     from tunneldef_cloudcompare import adapter
 
     class CancelAfterTwo(pycc.ccProgressDialog):
@@ -225,11 +238,39 @@ def test_detect_cancel_changes_nothing(pycc, plugin, core, pair, monkeypatch, ca
             self.cancel_after = 2
 
     monkeypatch.setattr(pycc, "ccProgressDialog", CancelAfterTwo)
+    slow = SlowCore(pair)
+    _patch_core(monkeypatch, "tunneldef.pipeline", "detect", slow.detect)
     _, cmp_e = _select(pycc, pair)
     assert plugin.detect_deformation(adapter.DetectParams(), ask=False) is None
+    assert len(slow.calls) == 1  # the core ran on the worker and stopped at Cancel
     assert cmp_e.getNumberOfScalarFields() == 0 and pycc.GetInstance().db == []
-    assert "cancelled; nothing was changed" in capsys.readouterr().out
+    assert "Detect deformation: cancelled during 'deformation'; nothing was changed" in (
+        capsys.readouterr().out
+    )
     assert pycc.GetInstance().frozen == [True, False]  # UI unfrozen after cancel
+    assert pycc.PROCESSED_EVENTS >= 2  # the GUI was kept alive while waiting
+
+
+def test_actions_refuse_a_stride0_runtime(pycc, plugin, core, pair, capsys):
+    from tunneldef_cloudcompare import adapter
+
+    _, cmp_e = _select(pycc, pair)
+    pycc.STRIDE0_ARRAYS = True
+    assert plugin.detect_deformation(adapter.DetectParams(), ask=False) is None
+    assert plugin.register_to_reference() is None
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 2 and all("stride-0 numpy arrays" in line for line in out)
+    assert out[0].startswith("[tunneldef] Detect deformation: this CloudCompare Python runtime")
+    assert core.calls == [] and cmp_e.getNumberOfScalarFields() == 0
+    assert pycc.GetInstance().db == []
+
+
+def test_actions_in_command_line_mode_say_they_need_the_window(pycc, plugin, core, capsys):
+    pycc._GUI = None
+    pycc._CMDLINE = pycc.ccCommandLineInterface([])
+    assert plugin.detect_deformation(ask=False) is None
+    out = capsys.readouterr().out
+    assert "needs CloudCompare's window" in out and core.calls == []
 
 
 def test_detect_core_error_is_reported(pycc, plugin, monkeypatch, pair, capsys):
@@ -269,7 +310,7 @@ def test_extract_centerline_action(pycc, plugin, monkeypatch, pair, capsys):
     extraction = SimpleNamespace(centerline=Centerline.from_polyline(axis, step=0.5), slices=slices)
     seen = {}
 
-    def fake_extract(xyz, *, config=None, progress=None):
+    def fake_extract(xyz, *, slicing=None, settings=None, progress=None):
         seen["xyz"] = xyz
         progress("slices", 1.0)
         return extraction
@@ -395,7 +436,7 @@ def test_detect_action_with_real_core(pycc, plugin, monkeypatch):
             f[name], np.asarray(res.cloud.fields[name], np.float32), atol=0, err_msg=name
         )
     assert np.abs(adapter.read_points(made.registered) - res.cloud.xyz).max() < 1e-4
-    ref_line = adapter.read_points(made.ref_centerline.cloud)
+    ref_line = adapter.read_points(made.ref_centerline.getAssociatedCloud())
     assert np.abs(ref_line - res.ref_centerline.points).max() < 1e-4
     assert res.ref_centerline.length > 15.0  # a 20 m tunnel (the overlap of both scans)
 
@@ -414,8 +455,8 @@ def test_extract_centerline_action_with_real_core(pycc, plugin, monkeypatch, cap
     seen = {}
     real = centerline.extract_centerline
 
-    def spy(xyz, *, config=None, progress=None):
-        seen["res"] = real(xyz, config=config, progress=progress)
+    def spy(xyz, **kwargs):
+        seen["res"] = real(xyz, **kwargs)
         return seen["res"]
 
     monkeypatch.setattr(centerline, "extract_centerline", spy)
@@ -426,7 +467,8 @@ def test_extract_centerline_action_with_real_core(pycc, plugin, monkeypatch, cap
     poly = plugin.extract_centerline()
     assert poly is not None
     res = seen["res"]
-    assert np.abs(adapter.read_points(poly.cloud) - res.centerline.points).max() < 1e-4
+    line = adapter.read_points(poly.getAssociatedCloud())
+    assert np.abs(line - res.centerline.points).max() < 1e-4
     rows = [line.split() for line in capsys.readouterr().out.splitlines()]
     start = next(i for i, r in enumerate(rows) if r[:3] == ["chainage", "width", "height"])
     table = rows[start + 1 : start + 1 + len(res.slices)]

@@ -75,14 +75,38 @@ def test_read_points_applies_shift_and_scale(pycc, adapter):
     assert np.abs(got - xyz).max() < 1e-5
 
 
-def test_read_points_falls_back_to_getpoint_when_rows_are_identical(pycc, adapter, caplog):
+def test_read_points_refuses_stride0_points(pycc, adapter):
     xyz = _survey_points(300)
     e = _entity(pycc, xyz)
-    pycc.BROKEN_POINTS = True
+    pycc.STRIDE0_ARRAYS = True
     assert np.all(np.asarray(e.points()) == np.asarray(e.points())[0])  # the quirk is on
-    got = adapter.read_points(e)
-    assert np.abs(got - xyz).max() < 1e-5
-    assert "one by one" in caplog.text
+    with pytest.raises(adapter.BrokenRuntimeError, match=r"stride-0 .*strides \(0, 4\)"):
+        adapter.read_points(e)
+
+
+def test_runtime_check_passes_on_a_sound_runtime_and_refuses_stride0(pycc, adapter):
+    adapter.check_runtime(pycc)  # sound: no error
+    from tunneldef_cloudcompare.runtime import reset_runtime_check
+
+    reset_runtime_check()
+    pycc.STRIDE0_ARRAYS = True
+    with pytest.raises(adapter.BrokenRuntimeError) as info:
+        adapter.check_runtime(pycc)
+    message = str(info.value)
+    assert "\n" not in message and "stride-0" in message and "pybind11 >= 2.13" in message
+
+
+def test_move_entity_refuses_lost_matrix_writes(pycc, adapter):
+    xyz = _survey_points(50)
+    e = _entity(pycc, xyz)
+    before = np.asarray(e.points()).copy()
+    pycc.STRIDE0_ARRAYS = True
+    t = np.eye(4)
+    t[:3, 3] = [1.0, 2.0, 3.0]
+    with pytest.raises(adapter.BrokenRuntimeError, match="ccGLMatrix.asArray"):
+        adapter.move_entity(e, t)
+    pycc.STRIDE0_ARRAYS = False
+    np.testing.assert_array_equal(np.asarray(e.points()), before)  # not moved at all
 
 
 def test_scale_getter_bug_assumes_unit_scale(pycc, adapter, caplog):
@@ -201,7 +225,7 @@ def test_make_point_cloud_inherits_shift(pycc, adapter):
 
 def test_copy_shift_without_copy_method(pycc, adapter, monkeypatch):
     ref = _entity(pycc, _survey_points(10), scale=4.0)
-    monkeypatch.delattr(pycc.ccHObject, "copyGlobalShiftAndScale")
+    monkeypatch.delattr(pycc.ccShiftedObject, "copyGlobalShiftAndScale")
     dst = pycc.ccPointCloud("x")
     adapter.copy_shift_and_scale(dst, ref)
     shift, scale = adapter.shift_and_scale(dst)
@@ -215,7 +239,7 @@ def test_make_polyline(pycc, adapter):
     assert poly.indices == list(range(7)) and not poly.closed and poly.getName() == "axis"
     assert poly.cloud is vertices and vertices.getName() == "axis vertices"
     assert poly.colour.g == 255 and poly.colours_shown
-    assert np.abs(adapter.read_points(poly.cloud) - pts).max() < 1e-5
+    assert np.abs(adapter.read_points(poly.getAssociatedCloud()) - pts).max() < 1e-5
     shift, _ = adapter.shift_and_scale(poly)
     assert np.allclose(shift, SHIFT)
 

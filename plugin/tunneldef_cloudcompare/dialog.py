@@ -13,7 +13,7 @@ import importlib
 import logging
 from typing import Any
 
-from .adapter import DetectParams
+from .params import DetectParams
 
 log = logging.getLogger(__name__)
 

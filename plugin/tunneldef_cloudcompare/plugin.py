@@ -3,9 +3,11 @@
 Found by CloudCompare through the entry point ``cloudcompare.plugins: tunneldef =
 tunneldef_cloudcompare.plugin:TunnelDefPlugin``. Only ``pycc`` and numpy are imported at module
 level (an import error would silently drop the plugin); the core, Open3D and Qt are imported
-inside the actions. Each action: read the selection on the main thread -> run the core in
-``pycc.RunInThread`` with a cancellable ``ccProgressDialog`` -> write fields / add entities on
-the main thread.
+inside the actions. Each action: check that the runtime's arrays are sound -> read the
+selection on the main thread -> run the core on a Python worker thread while the main thread
+keeps CloudCompare responsive (``pycc.ProcessEvents``) and shows a cancellable
+``ccProgressDialog`` -> write fields / add entities on the main thread. ``pycc.RunInThread``
+is not used: it can abort CloudCompare (see :mod:`.worker`).
 """
 
 from __future__ import annotations
@@ -18,11 +20,20 @@ import numpy as np  # noqa: F401 - the plugin's only other top-level dependency
 import pycc
 
 from . import adapter
-from .adapter import DetectParams, Outcome, ProgressBridge
+from .params import DetectParams
+from .worker import Outcome, ProgressBridge
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TunnelDefPlugin", "detect_deformation", "extract_centerline", "register_to_reference"]
+__all__ = [
+    "TunnelDefPlugin",
+    "detect_deformation",
+    "extract_centerline",
+    "register_to_reference",
+    "detect_on",
+    "centerline_on",
+    "register_on",
+]
 
 
 def _console(text: str) -> None:
@@ -45,19 +56,23 @@ def _run_with_progress(
     """Run ``func(*args, progress=bridge, **kwargs)`` in a worker thread with a cancellable
     progress dialog; the UI is frozen meanwhile. Exceptions come back in the Outcome."""
     cc = pycc.GetInstance()
+    process_events = getattr(pycc, "ProcessEvents", None)
     dialog = pycc.ccProgressDialog(cancelButton=True)
     dialog.setMethodTitle(title)
     dialog.setInfo("working... (Cancel stops at the next step)")
     bridge = ProgressBridge(dialog)
     dialog.start()
-    cc.freezeUI(True)
+    freeze = getattr(cc, "freezeUI", None)  # the command-line instance has no UI to freeze
+    if freeze is not None:
+        freeze(True)
     try:
-        outcome = pycc.RunInThread(adapter.run_guarded, func, *args, progress=bridge, **kwargs)
+        outcome = adapter.run_in_worker(
+            func, *args, bridge=bridge, process_events=process_events, **kwargs
+        )
     finally:
-        cc.freezeUI(False)
+        if freeze is not None:
+            freeze(False)
         dialog.stop()
-    if outcome is None:  # a runtime that loses the return value
-        outcome = Outcome(error=RuntimeError("the worker thread returned nothing"))
     return outcome, bridge
 
 
@@ -65,7 +80,7 @@ def _report_failure(action: str, outcome: Outcome) -> None:
     from tunneldef.errors import TunnelDefError
 
     if outcome.cancelled:
-        _console(f"[tunneldef] {action}: cancelled; nothing was changed")
+        _console(f"[tunneldef] {action}: {outcome.error}; nothing was changed")
     elif isinstance(outcome.error, TunnelDefError):
         _error(f"{action}: {outcome.error}")
     else:
@@ -73,8 +88,25 @@ def _report_failure(action: str, outcome: Outcome) -> None:
         _error(f"{action} failed: {type(outcome.error).__name__}: {outcome.error}")
 
 
+def _runtime_ok(action: str) -> bool:
+    """False (after a one-line message) if this runtime hands out wrong arrays."""
+    try:
+        adapter.check_runtime(pycc)
+    except adapter.BrokenRuntimeError as exc:
+        _error(f"{action}: {exc}")
+        return False
+    return True
+
+
 def _selected_clouds(count: int, action: str) -> list[Any] | None:
+    """The selected clouds if there are ``count``, else None (after a one-line message)."""
     cc = pycc.GetInstance()
+    if not hasattr(cc, "getSelectedEntities"):  # -PYTHON_SCRIPT mode: no window, no selection
+        _error(
+            f"{action}: needs CloudCompare's window (no selection in command-line mode); "
+            "use cloudcompare_scripts/detect_in_cloudcompare.py there"
+        )
+        return None
     clouds = adapter.point_clouds(cc.getSelectedEntities())
     if len(clouds) != count:
         what = "one point cloud" if count == 1 else f"{count} point clouds"
@@ -84,7 +116,11 @@ def _selected_clouds(count: int, action: str) -> list[Any] | None:
 
 
 def _add(entities: list[Any]) -> None:
+    """Add entities to the DB tree (GUI); in command-line mode keep them alive instead."""
     cc = pycc.GetInstance()
+    if not hasattr(cc, "addToDB"):
+        _keep(entities)
+        return
     for e in entities:
         cc.addToDB(e)
     cc.updateUI()
@@ -107,10 +143,24 @@ def detect_deformation(params: DetectParams | None = None, *, ask: bool = True) 
     if ask:
         from .dialog import ask_detect_params
 
-        params = ask_detect_params(adapter._name(clouds[0]), adapter._name(clouds[1]), params)
+        names = [adapter.entity_name(c) for c in clouds]
+        params = ask_detect_params(names[0], names[1], params)
         if params is None:
             return None
     ref_e, cmp_e = (clouds[1], clouds[0]) if params.swap else (clouds[0], clouds[1])
+    return detect_on(ref_e, cmp_e, params)
+
+
+def detect_on(ref_e: Any, cmp_e: Any, params: DetectParams | None = None) -> Any:
+    """*Detect deformation* on two given clouds (``ref_e`` = reference), no dialog.
+
+    What the menu action does after the selection and the dialog; usable from scripts,
+    including ``-PYTHON_SCRIPT`` mode. Returns the :class:`adapter.DetectEntities` or None
+    (after a one-line message)."""
+    action = "Detect deformation"
+    if not _runtime_ok(action):
+        return None
+    params = params or DetectParams.from_config()
     config = adapter.config_from_params(params)
     ref, cmp = adapter.entity_to_cloud(ref_e), adapter.entity_to_cloud(cmp_e)
     _console(
@@ -149,11 +199,15 @@ def extract_centerline(*, config: Any = None) -> Any:
 
     Per-slice width/height are printed as a table in the console. Returns the polyline or
     None."""
+    clouds = _selected_clouds(1, "Extract centerline")
+    return None if clouds is None else centerline_on(clouds[0], config=config)
+
+
+def centerline_on(entity: Any, *, config: Any = None) -> Any:
+    """*Extract centerline* on a given cloud (no selection needed); the polyline or None."""
     action = "Extract centerline"
-    clouds = _selected_clouds(1, action)
-    if clouds is None:
+    if not _runtime_ok(action):
         return None
-    entity = clouds[0]
     cloud = adapter.entity_to_cloud(entity)
     outcome, _ = _run_with_progress(action, adapter.compute_centerline, cloud, config)
     if not outcome.ok:
@@ -174,11 +228,15 @@ def register_to_reference(*, config: Any = None) -> Any:
 
     Adds a registered copy of the second and prints the 4 x 4 matrix. Returns the copy or
     None."""
+    clouds = _selected_clouds(2, "Register to reference")
+    return None if clouds is None else register_on(clouds[0], clouds[1], config=config)
+
+
+def register_on(ref_e: Any, cmp_e: Any, *, config: Any = None) -> Any:
+    """*Register to reference* on two given clouds (``ref_e`` = reference); the copy or None."""
     action = "Register to reference"
-    clouds = _selected_clouds(2, action)
-    if clouds is None:
+    if not _runtime_ok(action):
         return None
-    ref_e, cmp_e = clouds
     ref, cmp = adapter.entity_to_cloud(ref_e), adapter.entity_to_cloud(cmp_e)
     outcome, _ = _run_with_progress(action, adapter.compute_register, ref, cmp, config)
     if not outcome.ok:
@@ -204,7 +262,7 @@ def _keep(objects: list[Any]) -> None:
 
 
 class TunnelDefPlugin(pycc.PythonPluginInterface):
-    """tunneldef's menu in CloudCompare (Plugins > Python > tunneldef)."""
+    """tunneldef's menu in CloudCompare (*Plugins > Python Plugin > Plugins > tunneldef*)."""
 
     def __init__(self) -> None:
         pycc.PythonPluginInterface.__init__(self)

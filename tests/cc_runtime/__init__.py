@@ -1,0 +1,1 @@
+"""Tests and helpers that run inside the real CloudCompare 2.13 + PythonRuntime."""
