@@ -84,6 +84,85 @@ def _robust_kwargs(cfg: object) -> dict[str, object]:
     return {n: getattr(cfg, n) for n in names if hasattr(cfg, n)}
 
 
+_PROBE_RADIUS = 0.06  # m: radius of the ray behind a surface in which rock is looked for
+_PROBE_START = 0.12  # m: the ray starts this far behind the surface (8 sigma of its noise)
+_PROBE_MIN_POINTS = 3  # reference points on the ray that make a surface an object in front
+
+
+_AMBIGUOUS_COS = 0.5  # |normal . radial| below this: the outward side of a surface is unsure
+
+
+def _ray_counts(ref: np.ndarray, c: np.ndarray, n: np.ndarray, reach: float) -> np.ndarray:
+    """Reference points on a thin ray (radius ``_PROBE_RADIUS``) from ``_PROBE_START`` to
+    ``reach`` metres along each direction ``n`` (C, 3) from each position ``c`` (C, 3)."""
+    from .cylinders import _RadiusIndex
+
+    if len(c) == 0:
+        return np.zeros(0, dtype=np.int64)
+    origin = c.mean(axis=0)
+    c = c - origin
+    ball = 1.5 * _PROBE_RADIUS  # balls along the ray, spaced to cover it
+    steps = np.arange(_PROBE_START, reach + ball, ball)
+    probes = (c[:, None, :] + steps[None, :, None] * n[:, None, :]).reshape(-1, 3)
+    lo, hi = probes.min(axis=0) - ball, probes.max(axis=0) + ball
+    local = ref - origin
+    local = local[np.all((local >= lo) & (local <= hi), axis=1)]
+    group, idx, _ = _RadiusIndex(local, ball).ball(probes, ball)
+    core = group // len(steps)
+    rel = local[idx] - c[core]
+    along = np.einsum("ij,ij->i", rel, n[core])
+    across2 = np.einsum("ij,ij->i", rel, rel) - along**2
+    on_ray = (along >= _PROBE_START) & (along <= reach) & (across2 <= _PROBE_RADIUS**2)
+    # a point can sit in two neighbouring balls: count it once per ray
+    key = np.unique(core[on_ray].astype(np.int64) * (len(local) + 1) + idx[on_ray])
+    return np.bincount(key // (len(local) + 1), minlength=len(c))
+
+
+def _stands_off(
+    ref: np.ndarray,
+    centerline: Centerline,
+    cores: np.ndarray,
+    normals: np.ndarray,
+    point_core: np.ndarray,
+    reach: float,
+) -> np.ndarray:
+    """Whether each point's core surface stands in front of other reference points.
+
+    Reference points are looked for on a thin ray behind each core along its outward normal
+    (:func:`_ray_counts`, up to ``reach``): a pipe, the conveyor, a coal load or a person has
+    the rock (or the floor) behind it, the shell has nothing (also not in a corner, where a
+    ball behind a tilted normal would touch the other wall). Where the normal is nearly
+    across the ray from the centreline (``|n . radial| < _AMBIGUOUS_COS``: the roof and floor
+    of a side chamber, the belt, the top of a pipe), which side is outward is unsure: the
+    surface stands off only with points on both sides within twice ``reach`` (a chamber's
+    roof has its floor on one side and rock on the other; the belt has the floor below and
+    the roof above). ``point_core`` is each point's core (-1: none, False).
+    """
+    out = np.zeros(point_core.shape[0], dtype=bool)
+    ok = point_core >= 0
+    if not ok.any() or len(cores) == 0:
+        return out
+    used = np.unique(point_core[ok])
+    c, n = cores[used], normals[used]
+    proj = centerline.project(c)
+    _, lat, ver = centerline.frame_at(proj.chainage)
+    radial = proj.lateral[:, None] * lat + proj.vertical[:, None] * ver
+    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-12)
+    unsure = np.abs(np.einsum("ij,ij->i", n, radial)) < _AMBIGUOUS_COS
+    behind = np.zeros(len(used), dtype=bool)
+    sure = ~unsure
+    behind[sure] = _ray_counts(ref, c[sure], n[sure], reach) >= _PROBE_MIN_POINTS
+    if unsure.any():
+        far = 2.0 * reach
+        both = _ray_counts(ref, c[unsure], n[unsure], far) >= _PROBE_MIN_POINTS
+        both &= _ray_counts(ref, c[unsure], -n[unsure], far) >= _PROBE_MIN_POINTS
+        behind[unsure] = both
+    stand = np.zeros(len(cores), dtype=bool)
+    stand[used] = behind
+    out[ok] = stand[point_core[ok]]
+    return out
+
+
 def compute_deformation(
     ref_xyz: np.ndarray,
     cmp_xyz: np.ndarray,
@@ -207,32 +286,60 @@ def compute_deformation(
                     ref_other = other_job.result()
                 ref_mask = shell_module.shell_mask(ref_off, ref_obl, other=ref_other)
                 cmp_mask = shell_module.shell_mask(cmp_off, cmp_obl, other=cmp_other)
+            kwargs = _robust_kwargs(dcfg)
             r = robust_deformation(
                 ref,
                 cmp,
                 centerline,
                 ref_mask=ref_mask,
                 cmp_mask=cmp_mask,
+                measure=shell_mask,
                 registration_sigma=registration_sigma,
                 workers=workers,
-                progress=scaled(progress, 0.1, 0.85),
-                **_robust_kwargs(dcfg),
+                progress=scaled(progress, 0.1, 0.75),
+                **kwargs,
             )
             deformation = np.asarray(r.deformation, dtype=np.float64)
             nrm = np.asarray(r.normal, dtype=np.float64)
+            significant = np.asarray(r.significant, dtype=bool)
+            lod95 = np.asarray(r.lod95, dtype=np.float64)
+            rest = ~shell_mask
+            take = np.zeros_like(rest)
+            if rest.any():
+                # points the classifier did not keep (chamber walls, edges of the shell's
+                # envelope, rough rock, but also equipment, coal, people): measured on the
+                # surfaces of all points; those that stand in front of other reference
+                # points (rock behind them) are clutter, see below
+                r2 = robust_deformation(
+                    ref,
+                    cmp,
+                    centerline,
+                    measure=rest,
+                    registration_sigma=registration_sigma,
+                    workers=workers,
+                    progress=scaled(progress, 0.75, 0.85),
+                    **kwargs,
+                )
+                standing = np.zeros(len(cmp), dtype=bool)
+                standing[rest] = _stands_off(
+                    ref, centerline, r2.core_xyz, r2.core_normal, r2.core[rest],
+                    dcfg.standoff_reach,
+                )
+                take = rest & ~standing & np.isfinite(r2.deformation)
+                deformation[take] = r2.deformation[take]
+                nrm[take] = r2.normal[take]
+                significant[take] = r2.significant[take]
+                lod95[take] = r2.lod95[take]
             _, lat_dir, ver_dir = centerline.frame_at(pp.chainage)
             # the displacement vector deformation * normal, split into the changes of
             # |lateral| and |vertical| (NaN where the estimator gave no value)
             horizontal = deformation * np.einsum("ij,ij->i", nrm, lat_dir) * np.sign(pp.lateral)
             vertical = deformation * np.einsum("ij,ij->i", nrm, ver_dir) * np.sign(pp.vertical)
-            significant = np.asarray(r.significant, dtype=bool)
-            lod95 = np.asarray(r.lod95, dtype=np.float64)
             clutter = ~shell_mask & ~np.isfinite(deformation)
             if clutter.any():
-                # equipment, coal, people away from the shell have no surface to measure along:
-                # they get the paper's KNN-centroid change, so that moved clutter still shows
-                # (never as danger, which is judged on the shell); points off the shell mask
-                # but on the shell surface keep the estimator's value
+                # equipment, coal, people in front of the shell have no surface of their own
+                # to measure along: they get the paper's KNN-centroid change, so that moved
+                # clutter still shows (never as danger, which is judged on the shell)
                 sub_pp = Projection(
                     *(getattr(pp, f.name)[clutter] for f in dataclass_fields(Projection))
                 )
@@ -244,6 +351,7 @@ def compute_deformation(
                 deformation[clutter], horizontal[clutter], vertical[clutter] = dc, hc, vc
                 significant[clutter] = False
                 lod95[clutter] = np.nan
+            shell_mask = shell_mask | take
             k = None
         # no counterpart beyond the reference's ends or farther than max_distance (holes)
         lo, hi = _coverage(ref, centerline, workers, ref_chainage)
