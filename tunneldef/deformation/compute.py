@@ -305,6 +305,7 @@ def compute_deformation(
             lod95 = np.asarray(r.lod95, dtype=np.float64)
             rest = ~shell_mask
             take = np.zeros_like(rest)
+            no_value = np.zeros_like(rest)
             if rest.any():
                 # points the classifier did not keep (chamber walls, edges of the shell's
                 # envelope, rough rock, but also equipment, coal, people): measured on the
@@ -326,6 +327,9 @@ def compute_deformation(
                     dcfg.standoff_reach,
                 )
                 take = rest & ~standing & np.isfinite(r2.deformation)
+                # on the shell surface but without a supported estimate: NaN, not the KNN
+                unsure = rest & ~standing & np.asarray(r2.unsupported, dtype=bool)
+                no_value |= unsure
                 deformation[take] = r2.deformation[take]
                 nrm[take] = r2.normal[take]
                 significant[take] = r2.significant[take]
@@ -335,7 +339,7 @@ def compute_deformation(
             # |lateral| and |vertical| (NaN where the estimator gave no value)
             horizontal = deformation * np.einsum("ij,ij->i", nrm, lat_dir) * np.sign(pp.lateral)
             vertical = deformation * np.einsum("ij,ij->i", nrm, ver_dir) * np.sign(pp.vertical)
-            clutter = ~shell_mask & ~np.isfinite(deformation)
+            clutter = ~shell_mask & ~np.isfinite(deformation) & ~no_value
             if clutter.any():
                 # equipment, coal, people in front of the shell have no surface of their own
                 # to measure along: they get the paper's KNN-centroid change, so that moved

@@ -236,7 +236,8 @@ def _epoch_stats(epoch: _Epoch, cores, normals, radius, depth):
     """
     if epoch.empty or len(cores) == 0:
         nan = np.full(len(cores), np.nan)
-        return nan, nan.copy(), np.zeros(len(cores), dtype=np.int32), np.full((len(cores), 3), np.nan)
+        centre = np.full((len(cores), 3), np.nan)
+        return nan, nan.copy(), np.zeros(len(cores), dtype=np.int32), centre
     group, idx, d2 = epoch.ball(cores, float(np.hypot(radius, depth)))
     n32 = normals.astype(np.float32)
     cn = n32[group]

@@ -103,10 +103,14 @@ __all__ = ["RobustDeformation", "robust_deformation", "voxel_cores"]
 logger = logging.getLogger(__name__)
 
 _Z95 = 1.959964
+_FINE_GATE = 3.0  # a change beyond this many LoD95 of the quiet estimate is read finely (pass 5);
+# flat rock reaches 3 LoD95 (5.9 standard errors) in about 1e-8 of its cores
 _SUPPORT_SHIFT = 0.25  # of the cylinder radius: largest distance between the centres of the two
 # epochs' points in a cylinder (about 0.05 r on full cover at 400 points/m^2; a hole's edge
 # through the axis moves one centre by 0.42 r)
-_SUPPORT_MIN_POINTS = 5  # fewer points of an epoch in the (widened) cylinder: no value
+_SUPPORT_MIN_POINTS = 5
+_NONPLANAR_FACTOR = 2.0  # a cylinder rougher than this many times the median one, and by
+_NONPLANAR_EXCESS = 0.010  # at least this much (m), after widening holds no single surface  # fewer points of an epoch in the (widened) cylinder: no value
 _ROUGH_FACTOR = 1.5  # a cylinder this much rougher than the median one is measured wider,
 _ROUGH_EXCESS = 0.005  # and by at least this much, m: with a low-noise scanner (2 mm) the
 # curvature of a 30 mm sag alone makes its cylinders 1.5 times rougher, and widening them
@@ -150,6 +154,11 @@ class RobustDeformation:
         Half-length along the normal within which its reference points were taken, metres.
     meta : dict
         Parameters used and counts (cores, fallbacks, NaN cores).
+    unsupported : ndarray of bool, shape (N,)
+        Points whose cylinder held reference points but no supported estimate (the two
+        epochs cover different parts of it, too few points, no single surface): NaN, and
+        unlike a point without any reference surface in reach, not a case for another
+        estimator.
     """
 
     deformation: np.ndarray
@@ -168,6 +177,7 @@ class RobustDeformation:
     core_radius: np.ndarray
     core_ref_depth: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    unsupported: np.ndarray | None = None
 
 
 def _outward(centerline: Centerline, xyz: np.ndarray, workers: int) -> np.ndarray:
@@ -345,8 +355,10 @@ def robust_deformation(
     weak = (out["nr"] < min_points) | (out["nc"] < min_points)
     weak &= (out["nr"] > 0) & (out["nc"] > 0)
     n_sparse = int(weak.sum())
+    typicals = {}
     for key in ("sr", "sc"):
         typical = np.nanmedian(out[key]) if np.isfinite(out[key]).any() else np.inf
+        typicals[key] = typical
         with np.errstate(invalid="ignore"):
             rough = np.maximum(_ROUGH_FACTOR * typical, typical + _ROUGH_EXCESS)
             weak |= (out[key] > rough) & (variation <= _MAX_VARIATION)
@@ -383,6 +395,12 @@ def robust_deformation(
     with np.errstate(invalid="ignore"):
         one_sided = np.linalg.norm(out["or"] - out["oc"], axis=1) > _SUPPORT_SHIFT * radius_used
     unsupported = one_sided | (np.minimum(n_r, n_c) < _SUPPORT_MIN_POINTS)
+    # a cylinder still far rougher than the typical one at twice the width does not hold
+    # one surface (the floor seen in one epoch, the conveyor's frame in the other): no value
+    for key, typical in typicals.items():
+        with np.errstate(invalid="ignore"):
+            limit = np.maximum(_NONPLANAR_FACTOR * typical, typical + _NONPLANAR_EXCESS)
+            unsupported |= out[key] > limit
     d_mean[unsupported] = np.nan
     n_unsupported = int(unsupported.sum())
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -412,6 +430,23 @@ def robust_deformation(
         d_mean[ids] = (1.0 - lam) * d_mean[ids] + lam * d_pool
         se_used[ids] = (1.0 - lam) * se_used[ids] + lam * se_pool
         n_pooled = int(ids.size)
+    # pass 5, the scale from the data: where the quiet estimate above (pooled on sparse scans)
+    # separates a change from noise by a wide margin, the change is real and is read at the
+    # finest support instead, the core's own cylinder with its smoothing bias taken out in
+    # full: a narrow or strong change reads at its full size, flat rock keeps the quiet value
+    with np.errstate(invalid="ignore"):
+        lod_quiet = _Z95 * (se_used + registration_sigma)
+        fine = np.isfinite(d_mean) & (np.abs(d_mean) > _FINE_GATE * lod_quiet)
+    fine &= variation <= _MAX_VARIATION
+    n_fine = int(fine.sum())
+    if fine.any() and sharpen:
+        d_fine = _sharpen(
+            cores, normal, variation, d_plain, fine.astype(float), spacing=core_spacing,
+            workers=workers,
+        )
+        d_mean = d_mean.copy()
+        d_mean[fine] = d_fine[fine]
+        se_used[fine] = se[fine] * (1.0 + _SHARPEN_GAIN)
     with np.errstate(invalid="ignore"):
         lod = _Z95 * (se_used + registration_sigma)
     lod[~np.isfinite(d_mean)] = np.nan
@@ -443,6 +478,7 @@ def robust_deformation(
     )
     inverse = point_core
     normal_p = normal[inverse]
+    unsupported_p = unsupported[inverse]
     n_ref_p, n_cmp_p = n_r.astype(np.int32)[inverse], n_c.astype(np.int32)[inverse]
     s_ref_p, s_cmp_p = out["sr"][inverse], out["sc"][inverse]
     if measure is not None:  # back to every compared point (NaN / 0 / -1 where not measured)
@@ -451,6 +487,7 @@ def robust_deformation(
         )
         n_ref_p, n_cmp_p = (_scatter(a, measure, 0) for a in (n_ref_p, n_cmp_p))
         normal_p, inverse = _scatter(normal_p, measure, np.nan), _scatter(inverse, measure, -1)
+        unsupported_p = _scatter(unsupported_p, measure, False)
     with np.errstate(invalid="ignore"):
         significant = np.abs(d) > lod_p
     return RobustDeformation(
@@ -486,7 +523,9 @@ def robust_deformation(
             "sharpened_cores": int((beta > 0).sum()),
             "sharpen_strength_mean": float(beta[beta > 0].mean()) if beta.any() else 0.0,
             "pooled_cores": n_pooled,
+            "fine_cores": n_fine,
         },
+        unsupported=unsupported_p,
     )
 
 
@@ -519,6 +558,7 @@ def _nothing_measured(n: int, dim: int) -> RobustDeformation:
         core_radius=np.empty(0),
         core_ref_depth=np.empty(0),
         meta={"method": "robust", "cores": 0},
+        unsupported=np.zeros(n, dtype=bool),
     )
 
 
