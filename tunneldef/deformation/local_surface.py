@@ -108,9 +108,9 @@ _FINE_GATE = 3.0  # a change beyond this many LoD95 of the quiet estimate is rea
 _SUPPORT_SHIFT = 0.25  # of the cylinder radius: largest distance between the centres of the two
 # epochs' points in a cylinder (about 0.05 r on full cover at 400 points/m^2; a hole's edge
 # through the axis moves one centre by 0.42 r)
-_SUPPORT_MIN_POINTS = 5
+_SUPPORT_MIN_POINTS = 5  # fewer points of an epoch in the (widened) cylinder: no value
 _NONPLANAR_FACTOR = 2.0  # a cylinder rougher than this many times the median one, and by
-_NONPLANAR_EXCESS = 0.010  # at least this much (m), after widening holds no single surface  # fewer points of an epoch in the (widened) cylinder: no value
+_NONPLANAR_EXCESS = 0.010  # at least this much (m), after widening holds no single surface
 _ROUGH_FACTOR = 1.5  # a cylinder this much rougher than the median one is measured wider,
 _ROUGH_EXCESS = 0.005  # and by at least this much, m: with a low-noise scanner (2 mm) the
 # curvature of a 30 mm sag alone makes its cylinders 1.5 times rougher, and widening them
