@@ -57,9 +57,12 @@ from tunneldef.deformation.local_surface import robust_deformation, voxel_cores
 from tunneldef.deformation.shell import classify_shell
 from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
 
-DRIFT = (
-    Path(__file__).resolve().parents[1].parent / "shared" / "data" / "freiberg_mine_drift_tls.laz"
+#: the shared data folder: next to the checkout, or one level up (from a worktree)
+SHARED = next(
+    (p / "shared" for p in Path(__file__).resolve().parents[1:3] if (p / "shared").is_dir()),
+    Path(__file__).resolve().parents[1].parent / "shared",
 )
+DRIFT = SHARED / "data" / "freiberg_mine_drift_tls.laz"
 THRESHOLD = 0.010
 LENGTH, SAG_AT = 20.0, 10.0
 SCANNER_DENSITY = 2600.0  # points/m^2: 16 M points per 350 m over a 17.3 m section perimeter
@@ -696,7 +699,7 @@ def floor_block(seeds, cache):
 
 
 CC_M3C2 = Path("/opt/cloudcompare-m3c2")
-CC_M3C2_PARAMS = Path(__file__).resolve().parents[1].parent / "shared" / "cloudcompare-python"
+CC_M3C2_PARAMS = SHARED / "cloudcompare-python"
 
 
 def run_cc_m3c2(ref, cmp_, line, ctx):

@@ -338,14 +338,14 @@ def test_robust_method_dispatch(pair):
     t = pair.truth
     near = np.abs(t.chainage - SAG) < 2.5  # the sag's stretch only, to keep the test short
 
-    def robust(**kw):
+    def robust(settings=None):
+        settings = settings or DeformationConfig(method="robust")
         return compute_deformation(
             pair.ref.xyz,
             t.cmp_xyz_in_ref[near],
             t.centerline,
-            settings=DeformationConfig(method="robust"),
+            settings=settings,
             shell=t.label[near] == 0,
-            **kw,
         )
 
     d = robust()
@@ -356,7 +356,7 @@ def test_robust_method_dispatch(pair):
     assert np.nanmedian(d.vertical[core]) < -0.02
     assert d.method == "robust" and d.k is None
     # the sparse-scan pooling is a config switch: off, the plain cylinders are noisier here
-    plain = robust(config=Config().replace(deformation={"pool": False}))
+    plain = robust(DeformationConfig(method="robust", pool=False))
     still = near & (t.label == 0) & (t.displacement == 0.0)
     noise = {
         name: np.nanmean(np.abs(r.deformation[still[near]]))

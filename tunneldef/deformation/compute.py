@@ -86,7 +86,8 @@ def _robust_kwargs(cfg: object) -> dict[str, object]:
 
 _PROBE_RADIUS = 0.06  # m: radius of the ray behind a surface in which rock is looked for
 _PROBE_START = 0.12  # m: the ray starts this far behind the surface (8 sigma of its noise)
-_PROBE_MIN_POINTS = 3  # reference points on the ray that make a surface an object in front
+_PROBE_MIN_POINTS = 2  # points on the ray that make a surface an object in front (8 noise sigma
+# behind a shell surface there is nothing; shadows behind objects thin out what is there)
 
 
 _AMBIGUOUS_COS = 0.5  # |normal . radial| below this: the outward side of a surface is unsure
@@ -126,9 +127,9 @@ def _stands_off(
     point_core: np.ndarray,
     reach: float,
 ) -> np.ndarray:
-    """Whether each point's core surface stands in front of other reference points.
+    """Whether each point's core surface stands in front of other points ``ref`` (both epochs).
 
-    Reference points are looked for on a thin ray behind each core along its outward normal
+    Points are looked for on a thin ray behind each core along its outward normal
     (:func:`_ray_counts`, up to ``reach``): a pipe, the conveyor, a coal load or a person has
     the rock (or the floor) behind it, the shell has nothing (also not in a corner, where a
     ball behind a tilted normal would touch the other wall). Where the normal is nearly
@@ -323,7 +324,11 @@ def compute_deformation(
                 )
                 standing = np.zeros(len(cmp), dtype=bool)
                 standing[rest] = _stands_off(
-                    ref, centerline, r2.core_xyz, r2.core_normal, r2.core[rest],
+                    np.concatenate([ref, cmp]),
+                    centerline,
+                    r2.core_xyz,
+                    r2.core_normal,
+                    r2.core[rest],
                     dcfg.standoff_reach,
                 )
                 take = rest & ~standing & np.isfinite(r2.deformation)
