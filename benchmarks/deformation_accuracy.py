@@ -59,7 +59,7 @@ from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
 
 #: the shared data folder: next to the checkout, or one level up (from a worktree)
 SHARED = next(
-    (p / "shared" for p in Path(__file__).resolve().parents[1:3] if (p / "shared").is_dir()),
+    (p / "shared" for p in Path(__file__).resolve().parents[2:4] if (p / "shared").is_dir()),
     Path(__file__).resolve().parents[1].parent / "shared",
 )
 DRIFT = SHARED / "data" / "freiberg_mine_drift_tls.laz"
@@ -554,9 +554,10 @@ def survey_spec(section, density, noise, seed):
     )
 
 
-def registered_pair(spec, cache):
+def registered_pair(spec, cache, cached_only=False):
     """The pair of ``spec`` and the compared epoch moved by our own registration
-    (``tunneldef.pipeline.register_epochs``); kept in ``cache`` (a directory) when given."""
+    (``tunneldef.pipeline.register_epochs``); kept in ``cache`` (a directory) when given.
+    ``cached_only``: None when the pair is not in the cache yet."""
     import hashlib
     import pickle
 
@@ -567,6 +568,8 @@ def registered_pair(spec, cache):
     if path is not None and path.is_file():
         with open(path, "rb") as fh:
             return pickle.load(fh)
+    if cached_only:
+        return None
     pair = make_pair(spec)
     t0 = time.perf_counter()
     rp = register_epochs(pair.ref, pair.cmp, ANY_AXIAL)
@@ -632,7 +635,7 @@ def survey_row(name, method, s, seconds):
     )
 
 
-def survey_block(seeds, cache, *, sections, densities, noises, cc=False):
+def survey_block(seeds, cache, *, sections, densities, noises, cc=False, cached_only=False):
     """Every (section, density, noise) pair over ``seeds``, our registration, scored with
     :func:`survey_scores`; the mean over the seeds and the worst seed against the targets."""
     print(
@@ -648,10 +651,15 @@ def survey_block(seeds, cache, *, sections, densities, noises, cc=False):
             for label in noises:
                 name = f"{section} {density:.0f}/m2 {label}"
                 runs = {}
+                used = []
                 for seed in seeds:
                     pr = registered_pair(
-                        survey_spec(section, density, SURVEY_NOISE[label], seed), cache
+                        survey_spec(section, density, SURVEY_NOISE[label], seed), cache,
+                        cached_only,
                     )
+                    if pr is None:
+                        continue
+                    used.append(seed)
                     for method in ("robust", "cc-m3c2") if cc else ("robust",):
                         t0 = time.perf_counter()
                         try:
@@ -663,6 +671,10 @@ def survey_block(seeds, cache, *, sections, densities, noises, cc=False):
                         runs.setdefault(method, []).append(
                             (survey_scores(d, pr, SURVEY_CHANGES), time.perf_counter() - t0)
                         )
+                if not used:
+                    print(f"{name:<34} (no pair in the cache)")
+                    continue
+                name = f"{name} s{','.join(map(str, used))}"
                 for method, got in runs.items():
                     mean = {k: float(np.mean([g[0][k] for g in got])) for k in got[0][0]}
                     print(survey_row(name, method, mean, float(np.mean([g[1] for g in got]))))
@@ -682,14 +694,21 @@ def survey_block(seeds, cache, *, sections, densities, noises, cc=False):
         )
 
 
-def floor_block(seeds, cache):
+def floor_block(seeds, cache, cached_only=False):
     """Noise floor, arched section, 900 points/m^2, sigma 18 mm, our registration."""
-    print(f"\nNoise floor, arched, 900 points/m^2, +-1.8 cm (sigma 18 mm); seeds {seeds}")
     got = []
+    used = []
     for seed in seeds:
-        pr = registered_pair(survey_spec("arch", 900.0, SURVEY_NOISE["+-1.8cm"], seed), cache)
+        spec = survey_spec("arch", 900.0, SURVEY_NOISE["+-1.8cm"], seed)
+        pr = registered_pair(spec, cache, cached_only)
+        if pr is None:
+            continue
+        used.append(seed)
         d = compute_deformation(pr["ref"], pr["cmp"], pr["line"]).deformation
         got.append(survey_scores(d, pr, SURVEY_CHANGES))
+    print(f"\nNoise floor, arched, 900 points/m^2, +-1.8 cm (sigma 18 mm); seeds {used}")
+    if not got:
+        return
     mean = max(g["mean"] for g in got)
     p95 = max(g["p95"] for g in got)
     print(
@@ -766,6 +785,10 @@ def main() -> None:
     ap.add_argument(
         "--cache", default=None, help="directory keeping registered pairs between runs"
     )
+    ap.add_argument(
+        "--cached-only", action="store_true", help="surveyor's blocks: only pairs in --cache"
+    )
+    ap.add_argument("--no-drift", action="store_true", help="skip the real drift block")
     args = ap.parse_args()
     if args.speed_only:
         speed_block(args.speed_points, args.seed)
@@ -779,10 +802,12 @@ def main() -> None:
             densities=[float(x) for x in args.survey_densities.split(",")],
             noises=args.survey_noises.split(","),
             cc=not args.no_cc,
+            cached_only=args.cached_only,
         )
-        floor_block(seeds, args.cache)
-        drift_block(["robust"] + ([] if args.no_cc else ["cc-m3c2"]), args.drift_points,
-                    args.seed, amp=0.019, registered=True, seeds=seeds)
+        floor_block(seeds, args.cache, args.cached_only)
+        if not args.no_drift:
+            drift_block(["robust"] + ([] if args.no_cc else ["cc-m3c2"]), args.drift_points,
+                        args.seed, amp=0.019, registered=True, seeds=seeds)
         return
     methods = ["knn", "robust"]
     if not args.no_cc:
