@@ -223,12 +223,20 @@ def compute_deformation(
     vertical = change of |vertical| (Manhattan split, Fig. 11), (4) deformation = distance to
     the counterpart with the sign of ``horizontal + vertical`` (closer to the centreline than
     the counterpart: negative). ``robust``: the estimator's signed normal distance, split into
-    horizontal and vertical parts along its normal; points it cannot measure because they lie
-    off the shell surface (equipment, coal, people) get the ``knn`` value, so that moved
-    clutter still shows. The estimator's surfaces are fitted to the shell points of both
-    epochs, cut from the inner of the two epochs' envelopes (after their local difference, the
-    motion, is taken out: :meth:`tunneldef.deformation.shell.ShellEnvelope.matched_offset`);
-    the ``shell`` field is each compared point's own classification.
+    horizontal and vertical parts along its normal. The points the shell classifier kept are
+    measured on the surfaces of the shell points of both epochs, cut from the inner of the two
+    epochs' envelopes (after their local difference, the motion, is taken out:
+    :meth:`tunneldef.deformation.shell.ShellEnvelope.matched_offset`). Every other point with
+    a reference surface in reach is measured too, on the surfaces of all points: the side
+    chamber, the edges of the envelope, rough rock and corners the classifier left out are
+    shell all the same. Only what stands in front of other points (a pipe, the conveyor, a
+    coal load, a person: points of either epoch lie behind its surface within
+    ``settings.standoff_reach``, see :func:`_stands_off`) or has no reference surface within
+    ``max_depth`` keeps the paper's KNN change, so that moved clutter still shows, without a
+    level of detection and never significant. A point whose cylinder holds reference points
+    but no supported estimate (the two epochs cover different parts of it, at the edge of a
+    hole or of the scan; too few points; no single surface) gets NaN. The ``shell`` field is
+    the classifier's shell plus the points measured as shell surface.
     Both: points beyond the chainage range of the reference points (their 0.05-99.95 %
     quantiles) get NaN, and so do (``knn``) points farther than
     ``config.deformation.max_distance`` from their counterpart (holes in the reference).

@@ -31,11 +31,25 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
    The combination cancels their smoothing bias to second order (Richardson extrapolation)
    while averaging over about 0.3 m: on sparse scans it trades resolution for noise, which
    is what lets a 15 mm sag through (``pool=False`` turns it off).
-6. *Level of detection*:
+6. *Support*: a cylinder whose two epochs cover different parts of it (the centres of their
+   points across the normal more than ``max(0.25, 4 chance deviations)`` radii apart: the edge
+   of a hole, of the scan, of a shadow), that holds fewer than 5 points of an epoch, or that
+   is still more than twice (and 10 mm) rougher than the median cylinder after widening (no
+   single surface: the floor in one epoch, the conveyor's frame in the other) gets no value
+   (NaN, flagged ``unsupported``): one epoch's one-sided mean takes in the relief between the
+   two parts, and these were the tails of the field (values beyond 10 mm on unchanged rock).
+7. *Scale from the data*: where the value of steps 4-5 exceeds three times its LoD95 (a
+   change no noise explains: flat rock reaches it in about 1e-8 of its cores), the core is
+   read at the finest support instead, its own cylinder with the smoothing bias taken out in
+   full (``beta = 1``), so a narrow or strong change reads at its full size while flat rock
+   keeps the quiet, pooled value (in the spirit of multi-scale M3C2: the smallest support
+   whose level of detection still separates the change from noise).
+8. *Level of detection*:
    ``lod95 = 1.96 (se' + registration_sigma)``, ``se = sqrt(s_r^2 / n_r + s_c^2 / n_c)``
    from the spread ``s`` and count ``n`` of each epoch's cylinder, ``se' = se (1 + 0.4 beta)``
-   where sharpened, and the pooled combination's propagated error where pooled (neighbouring
-   cylinders share points, which is counted); ``significant = |d| > lod95``.
+   where sharpened (``se (1 + 0.4)`` where read finely), and the pooled combination's
+   propagated error where pooled (neighbouring cylinders share points, which is counted);
+   ``significant = |d| > lod95``.
 
 Depth: the core lies on the compared surface, so compared points are taken within
 ``min(max_depth, cylinder_radius)`` of it along the normal; reference points first within the
