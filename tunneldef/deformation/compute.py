@@ -235,8 +235,10 @@ def compute_deformation(
     ``max_depth`` keeps the paper's KNN change, so that moved clutter still shows, without a
     level of detection and never significant. A point whose cylinder holds reference points
     but no supported estimate (the two epochs cover different parts of it, at the edge of a
-    hole or of the scan; too few points; no single surface) gets NaN. The ``shell`` field is
-    the classifier's shell plus the points measured as shell surface.
+    hole or of the scan; too few points; no single surface) gets NaN. The ``shell`` field stays
+    the classifier's decision, and danger is judged on it as before (a coal load whose rock
+    behind is shadowed can pass the stand-off test and be measured as a surface; it must not
+    raise danger).
     Both: points beyond the chainage range of the reference points (their 0.05-99.95 %
     quantiles) get NaN, and so do (``knn``) points farther than
     ``config.deformation.max_distance`` from their counterpart (holes in the reference).
@@ -368,7 +370,6 @@ def compute_deformation(
                 deformation[clutter], horizontal[clutter], vertical[clutter] = dc, hc, vc
                 significant[clutter] = False
                 lod95[clutter] = np.nan
-            shell_mask = shell_mask | take
             k = None
         # no counterpart beyond the reference's ends or farther than max_distance (holes)
         lo, hi = _coverage(ref, centerline, workers, ref_chainage)
