@@ -90,25 +90,42 @@ _PROBE_MIN_POINTS = 2  # points on the ray that make a surface an object in fron
 # behind a shell surface there is nothing; shadows behind objects thin out what is there)
 
 
+_PASS2_CELL = 0.6  # m: points farther than one such voxel from every point to measure in the
+# second pass (cylinders up to 0.4 m wide and 0.3 m deep, normals over 0.3 m) play no part
+
+
+def _near(points: np.ndarray, centres: np.ndarray, cell: float) -> np.ndarray:
+    """Points in the voxels (edge ``cell``) holding a centre, or next to one (a coarse test
+    that keeps every point within ``cell`` of a centre)."""
+    if len(centres) == 0:
+        return np.zeros(len(points), dtype=bool)
+    lo = centres.min(axis=0) - 2.0 * cell
+
+    def keys(ijk: np.ndarray) -> np.ndarray:
+        return (ijk[:, 0] * 1_000_003 + ijk[:, 1]) * 1_000_033 + ijk[:, 2]
+
+    ijk = np.unique(np.floor((centres - lo) / cell).astype(np.int64), axis=0)
+    steps = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    around = np.unique(keys((ijk[:, None, :] + steps[None]).reshape(-1, 3)))
+    pk = keys(np.floor((points - lo) / cell).astype(np.int64))
+    pos = np.clip(np.searchsorted(around, pk), 0, len(around) - 1)
+    return around[pos] == pk
+
+
 _AMBIGUOUS_COS = 0.5  # |normal . radial| below this: the outward side of a surface is unsure
 
 
-def _ray_counts(ref: np.ndarray, c: np.ndarray, n: np.ndarray, reach: float) -> np.ndarray:
-    """Reference points on a thin ray (radius ``_PROBE_RADIUS``) from ``_PROBE_START`` to
-    ``reach`` metres along each direction ``n`` (C, 3) from each position ``c`` (C, 3)."""
-    from .cylinders import _RadiusIndex
-
+def _ray_counts(index, local: np.ndarray, c: np.ndarray, n: np.ndarray, reach: float) -> np.ndarray:
+    """Points of ``local`` (indexed by ``index``, a :class:`.cylinders._RadiusIndex` built with
+    radius ``1.5 * _PROBE_RADIUS``) on a thin ray (radius ``_PROBE_RADIUS``) from
+    ``_PROBE_START`` to ``reach`` metres along each direction ``n`` (C, 3) from each position
+    ``c`` (C, 3), in the same local frame."""
     if len(c) == 0:
         return np.zeros(0, dtype=np.int64)
-    origin = c.mean(axis=0)
-    c = c - origin
     ball = 1.5 * _PROBE_RADIUS  # balls along the ray, spaced to cover it
     steps = np.arange(_PROBE_START, reach + ball, ball)
     probes = (c[:, None, :] + steps[None, :, None] * n[:, None, :]).reshape(-1, 3)
-    lo, hi = probes.min(axis=0) - ball, probes.max(axis=0) + ball
-    local = ref - origin
-    local = local[np.all((local >= lo) & (local <= hi), axis=1)]
-    group, idx, _ = _RadiusIndex(local, ball).ball(probes, ball)
+    group, idx, _ = index.ball(probes, ball)
     core = group // len(steps)
     rel = local[idx] - c[core]
     along = np.einsum("ij,ij->i", rel, n[core])
@@ -150,13 +167,21 @@ def _stands_off(
     radial = proj.lateral[:, None] * lat + proj.vertical[:, None] * ver
     radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-12)
     unsure = np.abs(np.einsum("ij,ij->i", n, radial)) < _AMBIGUOUS_COS
+    from .cylinders import _RadiusIndex
+
+    origin = c.mean(axis=0)
+    c = c - origin
+    far = 2.0 * reach
+    margin = far + 2.0 * _PROBE_RADIUS
+    local = ref - origin
+    local = local[np.all((local >= c.min(axis=0) - margin) & (local <= c.max(axis=0) + margin), 1)]
+    index = _RadiusIndex(local, 1.5 * _PROBE_RADIUS)
     behind = np.zeros(len(used), dtype=bool)
     sure = ~unsure
-    behind[sure] = _ray_counts(ref, c[sure], n[sure], reach) >= _PROBE_MIN_POINTS
+    behind[sure] = _ray_counts(index, local, c[sure], n[sure], reach) >= _PROBE_MIN_POINTS
     if unsure.any():
-        far = 2.0 * reach
-        both = _ray_counts(ref, c[unsure], n[unsure], far) >= _PROBE_MIN_POINTS
-        both &= _ray_counts(ref, c[unsure], -n[unsure], far) >= _PROBE_MIN_POINTS
+        both = _ray_counts(index, local, c[unsure], n[unsure], far) >= _PROBE_MIN_POINTS
+        both &= _ray_counts(index, local, c[unsure], -n[unsure], far) >= _PROBE_MIN_POINTS
         behind[unsure] = both
     stand = np.zeros(len(cores), dtype=bool)
     stand[used] = behind
@@ -322,33 +347,42 @@ def compute_deformation(
                 # envelope, rough rock, but also equipment, coal, people): measured on the
                 # surfaces of all points; those that stand in front of other reference
                 # points (rock behind them) are clutter, see below
+                # only the points within reach of them take part (a coarse voxel test)
+                reach = _PASS2_CELL
+                kr, kc = _near(ref, cmp[rest], reach), _near(cmp, cmp[rest], reach)
+                kc |= rest
                 r2 = robust_deformation(
-                    ref,
-                    cmp,
+                    ref[kr],
+                    cmp[kc],
                     centerline,
-                    measure=rest,
+                    measure=rest[kc],
                     registration_sigma=registration_sigma,
                     workers=workers,
                     progress=scaled(progress, 0.75, 0.85),
                     **kwargs,
                 )
                 standing = np.zeros(len(cmp), dtype=bool)
+                in_rest = rest[kc]
                 standing[rest] = _stands_off(
                     np.concatenate([ref, cmp]),
                     centerline,
                     r2.core_xyz,
                     r2.core_normal,
-                    r2.core[rest],
+                    r2.core[in_rest],
                     dcfg.standoff_reach,
                 )
-                take = rest & ~standing & np.isfinite(r2.deformation)
+                r2_d = np.full(len(cmp), np.nan)
+                r2_d[kc] = r2.deformation
+                r2_unsupported = np.zeros(len(cmp), dtype=bool)
+                r2_unsupported[kc] = r2.unsupported
+                take = rest & ~standing & np.isfinite(r2_d)
                 # on the shell surface but without a supported estimate: NaN, not the KNN
-                unsure = rest & ~standing & np.asarray(r2.unsupported, dtype=bool)
-                no_value |= unsure
-                deformation[take] = r2.deformation[take]
-                nrm[take] = r2.normal[take]
-                significant[take] = r2.significant[take]
-                lod95[take] = r2.lod95[take]
+                no_value |= rest & ~standing & r2_unsupported
+                sub = take[kc]
+                deformation[take] = r2.deformation[sub]
+                nrm[take] = r2.normal[sub]
+                significant[take] = r2.significant[sub]
+                lod95[take] = r2.lod95[sub]
             _, lat_dir, ver_dir = centerline.frame_at(pp.chainage)
             # the displacement vector deformation * normal, split into the changes of
             # |lateral| and |vertical| (NaN where the estimator gave no value)
