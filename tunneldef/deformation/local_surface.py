@@ -40,15 +40,14 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
    two parts, and these were the tails of the field (values beyond 10 mm on unchanged rock).
 7. *Scale from the data*: where the value of steps 4-5 exceeds three times its LoD95 (a
    change no noise explains: flat rock reaches it in about 1e-8 of its cores), the core is
-   read at the finest support instead, the plain means of a cylinder of half the radius, and
-   its points take that value rather than the interpolation between cores, so a narrow or
-   strong change reads at its full size while flat rock keeps the quiet, pooled value (in
-   the spirit of multi-scale M3C2: the smallest support whose level of detection still
-   separates the change from noise).
+   read at the finest support instead, its own cylinder with the smoothing bias taken out in
+   full (``beta = 1``), so a narrow or strong change reads at its full size while flat rock
+   keeps the quiet, pooled value (in the spirit of multi-scale M3C2: the smallest support
+   whose level of detection still separates the change from noise).
 8. *Level of detection*:
    ``lod95 = 1.96 (se' + registration_sigma)``, ``se = sqrt(s_r^2 / n_r + s_c^2 / n_c)``
    from the spread ``s`` and count ``n`` of each epoch's cylinder, ``se' = se (1 + 0.4 beta)``
-   where sharpened (the fine cylinder's own ``se`` where read finely), and the pooled combination's
+   where sharpened (``se (1 + 0.4)`` where read finely), and the pooled combination's
    propagated error where pooled (neighbouring cylinders share points, which is counted);
    ``significant = |d| > lod95``.
 
@@ -120,7 +119,6 @@ logger = logging.getLogger(__name__)
 _Z95 = 1.959964
 _FINE_GATE = 3.0  # a change beyond this many LoD95 of the quiet estimate is read finely (pass 5);
 # flat rock reaches 3 LoD95 (5.9 standard errors) in about 1e-8 of its cores
-_FINE_RADIUS = 0.5  # of the cylinder radius: the finest support, where a change is clear
 _SUPPORT_SHIFT = 0.25  # of the cylinder radius: largest distance between the centres of the two
 # epochs' points in a cylinder (about 0.05 r on full cover at 400 points/m^2; a hole's edge
 # through the axis moves one centre by 0.42 r)
@@ -452,33 +450,21 @@ def robust_deformation(
         n_pooled = int(ids.size)
     # pass 5, the scale from the data: where the quiet estimate above (pooled on sparse scans)
     # separates a change from noise by a wide margin, the change is real and is read at the
-    # finest support instead: a cylinder of half the radius, its plain means, and at the
-    # points of such a core its own value, not the interpolation between cores (whose
-    # Gaussian read a 1.2 m wide bulge 15 % low). Narrow or strong changes read at their full
-    # size, flat rock keeps the quiet value.
+    # finest support instead, the core's own cylinder with its smoothing bias taken out in
+    # full: a narrow or strong change reads at its full size, flat rock keeps the quiet value
     with np.errstate(invalid="ignore"):
         lod_quiet = _Z95 * (se_used + registration_sigma)
         fine = np.isfinite(d_mean) & (np.abs(d_mean) > _FINE_GATE * lod_quiet)
     fine &= variation <= _MAX_VARIATION
-    if fine.any():
-        ids = np.flatnonzero(fine)
-        rf = _FINE_RADIUS * cylinder_radius
-        st = [np.zeros(len(ids)) for _ in range(6)]
-        for depth in np.unique(depth_used[ids]):
-            m = depth_used[ids] == depth
-            got = _epoch_stats(ref_epoch, cores[ids[m]], normal[ids[m]], rf, depth)[:3]
-            got += _epoch_stats(cmp_epoch, cores[ids[m]], normal[ids[m]], rf, short)[:3]
-            for s_, w in zip(st, got, strict=True):
-                s_[m] = w
-        mr, sr, nr, mc, sc, nc = st
-        ok = np.minimum(nr, nc) >= _SUPPORT_MIN_POINTS
-        with np.errstate(invalid="ignore", divide="ignore"):
-            se_f = np.sqrt(sr**2 / nr + sc**2 / nc)
-        d_mean = d_mean.copy()
-        d_mean[ids[ok]] = (mc - mr)[ok]
-        se_used[ids[ok]] = se_f[ok]
-        fine[ids[~ok]] = False
     n_fine = int(fine.sum())
+    if fine.any() and sharpen:
+        d_fine = _sharpen(
+            cores, normal, variation, d_plain, fine.astype(float), spacing=core_spacing,
+            workers=workers,
+        )
+        d_mean = d_mean.copy()
+        d_mean[fine] = d_fine[fine]
+        se_used[fine] = se[fine] * (1.0 + _SHARPEN_GAIN)
     with np.errstate(invalid="ignore"):
         lod = _Z95 * (se_used + registration_sigma)
     lod[~np.isfinite(d_mean)] = np.nan
@@ -508,8 +494,6 @@ def robust_deformation(
         spacing=core_spacing,
         workers=workers,
     )
-    own = fine[point_core] & np.isfinite(d)
-    d[own], lod_p[own] = d_mean[point_core[own]], lod[point_core[own]]
     inverse = point_core
     normal_p = normal[inverse]
     unsupported_p = unsupported[inverse]
