@@ -31,6 +31,20 @@ Scores (mm unless stated), on points labelled shell by the truth:
 A last block, in a fresh process, times the robust estimator on a compared cloud of one million
 points (median of three runs, after a small pair has taken the one-time start-up).
 
+The surveyor's blocks (issue 17; ``--survey-only``) score the field as a surveyor thresholds
+it: 16 m pairs (rectangular and arched sections; 400, 900 and 2,600 points/m^2; noise sigma
+12 mm, "+-1.2 cm", and 15 mm, the scanner's "+-3 cm" taken as 2 sigma) with a side chamber,
+pipes, a conveyor with a changing coal load, four occlusion holes and rough rock, 15 mm and
+30 mm roof sags and a 40 mm wall bulge 1.2 m wide, the compared epoch moved by our own
+registration (``tunneldef.pipeline.register_epochs``; ``--cache DIR`` keeps the registered
+pairs). Per point on the true unchanged shell: the share beyond 10 mm (either sign) of the
+points with a value, the noise floor, the share without a value, the side chamber's share;
+and the median read over each change's core against the truth's. Then the noise floor of
+the arched pair at 900 points/m^2 and sigma 18 mm, and the real drift's random halves with
+a 19 mm sag, registered by us, over the same seeds. ``cc-m3c2`` rows run CloudCompare 2.13's
+M3C2 plugin (``/opt/cloudcompare-m3c2``, skipped with a message where absent) on the same
+registered pairs.
+
 Run: ``python benchmarks/deformation_accuracy.py [--quick] [--no-cc] [--no-m3c2]
 [--densities 2600,400] [--speed-points 1000000] [--drift-points 600000]`` (default: about
 25 minutes on 2 cores, most of it at the scanner's density; ``--quick``: one sparse pair).
