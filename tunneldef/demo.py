@@ -66,7 +66,7 @@ def measured_vs_truth(result: Any, truth: Any, spec: Any) -> list[dict[str, Any]
     displacement and of the measured deformation; the chainage is that of the 0.5 m section
     with the most negative measured median there. ``error_pct`` is the measured median's
     error relative to the true one, and ``within_tolerance`` whether it is within
-    ``TOLERANCE_PCT``.
+    ``TOLERANCE_PCT`` (of the size: positive when the change reads larger than it is).
     """
     d = np.asarray(result.cloud.fields["deformation"], float)
     s = np.asarray(result.cloud.fields["chainage"], float)
@@ -90,7 +90,8 @@ def measured_vs_truth(result: Any, truth: Any, spec: Any) -> list[dict[str, Any]
             "points": int(core.sum()),
         })
         true = rows[-1]["true_mm"]
-        rows[-1]["error_pct"] = 100.0 * (rows[-1]["measured_mm"] - true) / abs(true)
+        # of the size: > 0 reads the change larger than it is, < 0 smaller
+        rows[-1]["error_pct"] = 100.0 * (abs(rows[-1]["measured_mm"]) - abs(true)) / abs(true)
         rows[-1]["within_tolerance"] = bool(abs(rows[-1]["error_pct"]) <= TOLERANCE_PCT)
     return rows
 
