@@ -338,12 +338,13 @@ def test_robust_method_dispatch(pair):
     t = pair.truth
     near = np.abs(t.chainage - SAG) < 2.5  # the sag's stretch only, to keep the test short
 
-    def robust(**kw):
+    def robust(settings=None):
+        settings = settings or DeformationConfig(method="robust")
         return compute_deformation(
             pair.ref.xyz,
             t.cmp_xyz_in_ref[near],
             t.centerline,
-            settings=DeformationConfig(method="robust", **kw),
+            settings=settings,
             shell=t.label[near] == 0,
         )
 
@@ -355,7 +356,7 @@ def test_robust_method_dispatch(pair):
     assert np.nanmedian(d.vertical[core]) < -0.02
     assert d.method == "robust" and d.k is None
     # the sparse-scan pooling is a config switch: off, the plain cylinders are noisier here
-    plain = robust(pool=False)
+    plain = robust(DeformationConfig(method="robust", pool=False))
     still = near & (t.label == 0) & (t.displacement == 0.0)
     noise = {
         name: np.nanmean(np.abs(r.deformation[still[near]]))
@@ -505,3 +506,37 @@ def test_counterpart_projection_equals_a_full_projection(pair):
         for name in ("lateral", "vertical"):
             np.testing.assert_allclose(getattr(fast, name), getattr(full, name), atol=5e-4)
         np.testing.assert_allclose(fast.chainage, full.chainage, atol=0.01)
+
+
+def test_chamber_and_holes_read_quietly_and_objects_keep_knn():
+    """Issue 17: the side chamber and the rock the classifier leaves out are measured by the
+    local-surface estimator (with a level of detection), quietly; hole edges give NaN rather
+    than a wrong value; objects with rock behind them keep the KNN change and stay out of
+    danger."""
+    pair = make_pair(
+        PairSpec(
+            tunnel=TunnelSpec(
+                length=10.0, chamber=True, equipment=True, conveyor=True, holes=3,
+                roughness=0.02,
+            ),
+            cmp_shift=0.0,
+            seed=3,
+        )
+    )
+    t = pair.truth
+    d = compute_deformation(
+        pair.ref.xyz, t.cmp_xyz_in_ref, t.centerline, settings=DeformationConfig()
+    )
+    inside = (t.chainage > 0.5) & (t.chainage < 9.5)
+    rock = inside & (t.label == 0)
+    chamber = rock & t.chamber
+    assert chamber.sum() > 1000
+    # before: a third of the chamber read beyond 10 mm (the classifier called it clutter)
+    assert np.nanmean(np.abs(d.deformation[chamber]) > 0.010) < 0.01
+    assert np.isfinite(d.lod95[chamber]).mean() > 0.9  # measured, not the KNN change
+    assert np.nanmean(np.abs(d.deformation[rock]) > 0.010) < 0.005
+    assert np.isfinite(d.deformation[rock]).mean() > 0.9
+    coal = t.label == 2
+    assert np.isnan(d.lod95[coal]).mean() > 0.8 and d.shell[coal].mean() < 0.05
+    danger, _ = danger_zones(d, threshold=0.02)
+    assert danger[coal].sum() == 0

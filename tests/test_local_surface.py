@@ -55,12 +55,15 @@ def test_noise_floor_on_unchanged_shell(sag_pair, sag_result):
     # reports ~27 mm here; the cylinder means must stay at the millimetre level
     tr = sag_pair.truth
     d = np.abs(sag_result.deformation[_unchanged(tr)])
-    assert np.isfinite(d).all()
+    # a few cylinders without support (the two epochs cover different parts of them) are NaN
+    ok = np.isfinite(d)
+    assert ok.mean() >= 0.98
+    d = d[ok]
     assert d.mean() <= 0.0033  # target 3 mm, +10 % for the small sample
     assert np.percentile(d, 95) <= 0.008
     assert np.mean(d > 0.010) <= 0.006  # false alarms at a 10 mm threshold
     # unbiased: the mean signed value over the unchanged shell is far below the noise
-    assert abs(np.mean(sag_result.deformation[_unchanged(tr)])) < 0.0005
+    assert abs(np.nanmean(sag_result.deformation[_unchanged(tr)])) < 0.0005
 
 
 def test_sag_peak_and_detection(sag_pair, sag_result):
@@ -200,9 +203,12 @@ def test_every_point_gets_a_value_where_reference_exists():
     assert r.deformation.shape == (len(pair.cmp),)
     overlap = tr.chainage < LENGTH - 0.6
     beyond = tr.chainage > LENGTH + 0.8
-    # shell, equipment and coal all get a value; only stray points in mid-air (label 3) may
-    # have no reference surface within max_depth
-    assert np.isfinite(r.deformation[overlap & (tr.label != 3)]).all()
+    # shell, equipment and coal all get a value, but for stray points in mid-air (label 3),
+    # without a reference surface within max_depth, and a few cylinders without support
+    # (flagged: the epochs cover different parts of them, or no single surface)
+    got = np.isfinite(r.deformation) | r.unsupported
+    assert got[overlap & (tr.label != 3)].all()
+    assert r.unsupported[overlap & (tr.label == 0)].mean() < 0.02
     assert np.isnan(r.deformation[beyond & (tr.label == 0)]).mean() > 0.95
     assert np.array_equal(np.isnan(r.lod95), np.isnan(r.deformation))
     assert not r.significant[np.isnan(r.deformation)].any()

@@ -84,6 +84,111 @@ def _robust_kwargs(cfg: object) -> dict[str, object]:
     return {n: getattr(cfg, n) for n in names if hasattr(cfg, n)}
 
 
+_PROBE_RADIUS = 0.06  # m: radius of the ray behind a surface in which rock is looked for
+_PROBE_START = 0.12  # m: the ray starts this far behind the surface (8 sigma of its noise)
+_PROBE_MIN_POINTS = 2  # points on the ray that make a surface an object in front (8 noise sigma
+# behind a shell surface there is nothing; shadows behind objects thin out what is there)
+
+
+_PASS2_CELL = 0.6  # m: points farther than one such voxel from every point to measure in the
+# second pass (cylinders up to 0.4 m wide and 0.3 m deep, normals over 0.3 m) play no part
+
+
+def _near(points: np.ndarray, centres: np.ndarray, cell: float) -> np.ndarray:
+    """Points in the voxels (edge ``cell``) holding a centre, or next to one (a coarse test
+    that keeps every point within ``cell`` of a centre)."""
+    if len(centres) == 0:
+        return np.zeros(len(points), dtype=bool)
+    lo = centres.min(axis=0) - 2.0 * cell
+
+    def keys(ijk: np.ndarray) -> np.ndarray:
+        return (ijk[:, 0] * 1_000_003 + ijk[:, 1]) * 1_000_033 + ijk[:, 2]
+
+    ijk = np.unique(np.floor((centres - lo) / cell).astype(np.int64), axis=0)
+    steps = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    around = np.unique(keys((ijk[:, None, :] + steps[None]).reshape(-1, 3)))
+    pk = keys(np.floor((points - lo) / cell).astype(np.int64))
+    pos = np.clip(np.searchsorted(around, pk), 0, len(around) - 1)
+    return around[pos] == pk
+
+
+_AMBIGUOUS_COS = 0.5  # |normal . radial| below this: the outward side of a surface is unsure
+
+
+def _ray_counts(index, local: np.ndarray, c: np.ndarray, n: np.ndarray, reach: float) -> np.ndarray:
+    """Points of ``local`` (indexed by ``index``, a :class:`.cylinders._RadiusIndex` built with
+    radius ``1.5 * _PROBE_RADIUS``) on a thin ray (radius ``_PROBE_RADIUS``) from
+    ``_PROBE_START`` to ``reach`` metres along each direction ``n`` (C, 3) from each position
+    ``c`` (C, 3), in the same local frame."""
+    if len(c) == 0:
+        return np.zeros(0, dtype=np.int64)
+    ball = 1.5 * _PROBE_RADIUS  # balls along the ray, spaced to cover it
+    steps = np.arange(_PROBE_START, reach + ball, ball)
+    probes = (c[:, None, :] + steps[None, :, None] * n[:, None, :]).reshape(-1, 3)
+    group, idx, _ = index.ball(probes, ball)
+    core = group // len(steps)
+    rel = local[idx] - c[core]
+    along = np.einsum("ij,ij->i", rel, n[core])
+    across2 = np.einsum("ij,ij->i", rel, rel) - along**2
+    on_ray = (along >= _PROBE_START) & (along <= reach) & (across2 <= _PROBE_RADIUS**2)
+    # a point can sit in two neighbouring balls: count it once per ray
+    key = np.unique(core[on_ray].astype(np.int64) * (len(local) + 1) + idx[on_ray])
+    return np.bincount(key // (len(local) + 1), minlength=len(c))
+
+
+def _stands_off(
+    ref: np.ndarray,
+    centerline: Centerline,
+    cores: np.ndarray,
+    normals: np.ndarray,
+    point_core: np.ndarray,
+    reach: float,
+) -> np.ndarray:
+    """Whether each point's core surface stands in front of other points ``ref`` (both epochs).
+
+    Points are looked for on a thin ray behind each core along its outward normal
+    (:func:`_ray_counts`, up to ``reach``): a pipe, the conveyor, a coal load or a person has
+    the rock (or the floor) behind it, the shell has nothing (also not in a corner, where a
+    ball behind a tilted normal would touch the other wall). Where the normal is nearly
+    across the ray from the centreline (``|n . radial| < _AMBIGUOUS_COS``: the roof and floor
+    of a side chamber, the belt, the top of a pipe), which side is outward is unsure: the
+    surface stands off only with points on both sides within twice ``reach`` (a chamber's
+    roof has its floor on one side and rock on the other; the belt has the floor below and
+    the roof above). ``point_core`` is each point's core (-1: none, False).
+    """
+    out = np.zeros(point_core.shape[0], dtype=bool)
+    ok = point_core >= 0
+    if not ok.any() or len(cores) == 0:
+        return out
+    used = np.unique(point_core[ok])
+    c, n = cores[used], normals[used]
+    proj = centerline.project(c)
+    _, lat, ver = centerline.frame_at(proj.chainage)
+    radial = proj.lateral[:, None] * lat + proj.vertical[:, None] * ver
+    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-12)
+    unsure = np.abs(np.einsum("ij,ij->i", n, radial)) < _AMBIGUOUS_COS
+    from .cylinders import _RadiusIndex
+
+    origin = c.mean(axis=0)
+    c = c - origin
+    far = 2.0 * reach
+    margin = far + 2.0 * _PROBE_RADIUS
+    local = ref - origin
+    local = local[np.all((local >= c.min(axis=0) - margin) & (local <= c.max(axis=0) + margin), 1)]
+    index = _RadiusIndex(local, 1.5 * _PROBE_RADIUS)
+    behind = np.zeros(len(used), dtype=bool)
+    sure = ~unsure
+    behind[sure] = _ray_counts(index, local, c[sure], n[sure], reach) >= _PROBE_MIN_POINTS
+    if unsure.any():
+        both = _ray_counts(index, local, c[unsure], n[unsure], far) >= _PROBE_MIN_POINTS
+        both &= _ray_counts(index, local, c[unsure], -n[unsure], far) >= _PROBE_MIN_POINTS
+        behind[unsure] = both
+    stand = np.zeros(len(cores), dtype=bool)
+    stand[used] = behind
+    out[ok] = stand[point_core[ok]]
+    return out
+
+
 def compute_deformation(
     ref_xyz: np.ndarray,
     cmp_xyz: np.ndarray,
@@ -143,12 +248,22 @@ def compute_deformation(
     vertical = change of |vertical| (Manhattan split, Fig. 11), (4) deformation = distance to
     the counterpart with the sign of ``horizontal + vertical`` (closer to the centreline than
     the counterpart: negative). ``robust``: the estimator's signed normal distance, split into
-    horizontal and vertical parts along its normal; points it cannot measure because they lie
-    off the shell surface (equipment, coal, people) get the ``knn`` value, so that moved
-    clutter still shows. The estimator's surfaces are fitted to the shell points of both
-    epochs, cut from the inner of the two epochs' envelopes (after their local difference, the
-    motion, is taken out: :meth:`tunneldef.deformation.shell.ShellEnvelope.matched_offset`);
-    the ``shell`` field is each compared point's own classification.
+    horizontal and vertical parts along its normal. The points the shell classifier kept are
+    measured on the surfaces of the shell points of both epochs, cut from the inner of the two
+    epochs' envelopes (after their local difference, the motion, is taken out:
+    :meth:`tunneldef.deformation.shell.ShellEnvelope.matched_offset`). Every other point with
+    a reference surface in reach is measured too, on the surfaces of all points: the side
+    chamber, the edges of the envelope, rough rock and corners the classifier left out are
+    shell all the same. Only what stands in front of other points (a pipe, the conveyor, a
+    coal load, a person: points of either epoch lie behind its surface within
+    ``settings.standoff_reach``, see :func:`_stands_off`) or has no reference surface within
+    ``max_depth`` keeps the paper's KNN change, so that moved clutter still shows, without a
+    level of detection and never significant. A point whose cylinder holds reference points
+    but no supported estimate (the two epochs cover different parts of it, at the edge of a
+    hole or of the scan; too few points; no single surface) gets NaN. The ``shell`` field stays
+    the classifier's decision, and danger is judged on it as before (a coal load whose rock
+    behind is shadowed can pass the stand-off test and be measured as a surface; it must not
+    raise danger).
     Both: points beyond the chainage range of the reference points (their 0.05-99.95 %
     quantiles) get NaN, and so do (``knn``) points farther than
     ``config.deformation.max_distance`` from their counterpart (holes in the reference).
@@ -207,32 +322,77 @@ def compute_deformation(
                     ref_other = other_job.result()
                 ref_mask = shell_module.shell_mask(ref_off, ref_obl, other=ref_other)
                 cmp_mask = shell_module.shell_mask(cmp_off, cmp_obl, other=cmp_other)
+            kwargs = _robust_kwargs(dcfg)
             r = robust_deformation(
                 ref,
                 cmp,
                 centerline,
                 ref_mask=ref_mask,
                 cmp_mask=cmp_mask,
+                measure=shell_mask,
                 registration_sigma=registration_sigma,
                 workers=workers,
-                progress=scaled(progress, 0.1, 0.85),
-                **_robust_kwargs(dcfg),
+                progress=scaled(progress, 0.1, 0.75),
+                **kwargs,
             )
             deformation = np.asarray(r.deformation, dtype=np.float64)
             nrm = np.asarray(r.normal, dtype=np.float64)
+            significant = np.asarray(r.significant, dtype=bool)
+            lod95 = np.asarray(r.lod95, dtype=np.float64)
+            rest = ~shell_mask
+            take = np.zeros_like(rest)
+            no_value = np.zeros_like(rest)
+            if rest.any():
+                # points the classifier did not keep (chamber walls, edges of the shell's
+                # envelope, rough rock, but also equipment, coal, people): measured on the
+                # surfaces of all points; those that stand in front of other reference
+                # points (rock behind them) are clutter, see below
+                # only the points within reach of them take part (a coarse voxel test)
+                reach = _PASS2_CELL
+                kr, kc = _near(ref, cmp[rest], reach), _near(cmp, cmp[rest], reach)
+                kc |= rest
+                r2 = robust_deformation(
+                    ref[kr],
+                    cmp[kc],
+                    centerline,
+                    measure=rest[kc],
+                    registration_sigma=registration_sigma,
+                    workers=workers,
+                    progress=scaled(progress, 0.75, 0.85),
+                    **kwargs,
+                )
+                standing = np.zeros(len(cmp), dtype=bool)
+                in_rest = rest[kc]
+                standing[rest] = _stands_off(
+                    np.concatenate([ref, cmp]),
+                    centerline,
+                    r2.core_xyz,
+                    r2.core_normal,
+                    r2.core[in_rest],
+                    dcfg.standoff_reach,
+                )
+                r2_d = np.full(len(cmp), np.nan)
+                r2_d[kc] = r2.deformation
+                r2_unsupported = np.zeros(len(cmp), dtype=bool)
+                r2_unsupported[kc] = r2.unsupported
+                take = rest & ~standing & np.isfinite(r2_d)
+                # on the shell surface but without a supported estimate: NaN, not the KNN
+                no_value |= rest & ~standing & r2_unsupported
+                sub = take[kc]
+                deformation[take] = r2.deformation[sub]
+                nrm[take] = r2.normal[sub]
+                significant[take] = r2.significant[sub]
+                lod95[take] = r2.lod95[sub]
             _, lat_dir, ver_dir = centerline.frame_at(pp.chainage)
             # the displacement vector deformation * normal, split into the changes of
             # |lateral| and |vertical| (NaN where the estimator gave no value)
             horizontal = deformation * np.einsum("ij,ij->i", nrm, lat_dir) * np.sign(pp.lateral)
             vertical = deformation * np.einsum("ij,ij->i", nrm, ver_dir) * np.sign(pp.vertical)
-            significant = np.asarray(r.significant, dtype=bool)
-            lod95 = np.asarray(r.lod95, dtype=np.float64)
-            clutter = ~shell_mask & ~np.isfinite(deformation)
+            clutter = ~shell_mask & ~np.isfinite(deformation) & ~no_value
             if clutter.any():
-                # equipment, coal, people away from the shell have no surface to measure along:
-                # they get the paper's KNN-centroid change, so that moved clutter still shows
-                # (never as danger, which is judged on the shell); points off the shell mask
-                # but on the shell surface keep the estimator's value
+                # equipment, coal, people in front of the shell have no surface of their own
+                # to measure along: they get the paper's KNN-centroid change, so that moved
+                # clutter still shows (never as danger, which is judged on the shell)
                 sub_pp = Projection(
                     *(getattr(pp, f.name)[clutter] for f in dataclass_fields(Projection))
                 )

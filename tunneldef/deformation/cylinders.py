@@ -199,7 +199,8 @@ def _clipped_stats(
     ``trim`` quantile of a normal distribution (cables, pipe backs, the other surface near a
     corner all lie inward of the shell; the rock behind it is clean). (3) Values farther than
     ``k`` standard deviations from the survivors' mean are dropped. Returns the mean of the last
-    survivors, the spread and their count; groups without values get NaN and 0.
+    survivors, the spread and their count (groups without values get NaN and 0), and which
+    values survived.
     """
     keep = np.ones(values.shape[0], dtype=bool)
     _, _, std, dev = _group_moments(group, values, keep, ngroups)
@@ -214,7 +215,7 @@ def _clipped_stats(
     empty = n < 1
     mean[empty] = np.nan
     spread[empty] = np.nan
-    return mean, spread, n.astype(np.int32)
+    return mean, spread, n.astype(np.int32), keep
 
 
 def _normal_quantile(p: float) -> float:
@@ -226,14 +227,17 @@ def _normal_quantile(p: float) -> float:
 
 def _epoch_stats(epoch: _Epoch, cores, normals, radius, depth):
     """Clipped mean / std / count of the projections on the core normal of one epoch's points
-    inside each core's cylinder (radius ``radius`` about the normal, ``|along| <= depth``).
+    inside each core's cylinder (radius ``radius`` about the normal, ``|along| <= depth``),
+    and the mean offset (C, 3) of those points across the normal from the cylinder's axis
+    (how one-sided the cylinder's cover is: at the edge of a hole or of the scan).
 
     Offsets from a core are small, so they are computed in float32; only points whose own
     normal is within ``_MAX_ANGLE_DEG`` of the core's count. NaN / 0 without points.
     """
     if epoch.empty or len(cores) == 0:
         nan = np.full(len(cores), np.nan)
-        return nan, nan.copy(), np.zeros(len(cores), dtype=np.int32)
+        centre = np.full((len(cores), 3), np.nan)
+        return nan, nan.copy(), np.zeros(len(cores), dtype=np.int32), centre
     group, idx, d2 = epoch.ball(cores, float(np.hypot(radius, depth)))
     n32 = normals.astype(np.float32)
     cn = n32[group]
@@ -241,4 +245,12 @@ def _epoch_stats(epoch: _Epoch, cores, normals, radius, depth):
     inside = (np.abs(a) <= depth) & (d2 - a * a <= radius * radius)
     group, idx, a, cn = group[inside], idx[inside], a[inside], cn[inside]
     same = np.einsum("ij,ij->i", epoch.normals[idx], cn) >= _COS_MAX_ANGLE
-    return _clipped_stats(group[same], a[same].astype(np.float64), len(cores))
+    group, idx, a, cn = group[same], idx[same], a[same], cn[same]
+    mean, spread, n, keep = _clipped_stats(group, a.astype(np.float64), len(cores))
+    g, w = group[keep], np.maximum(n, 1).astype(np.float64)
+    across = epoch.pts[idx[keep]] - cores.astype(np.float32)[g] - a[keep, None] * cn[keep]
+    centre = np.stack(
+        [np.bincount(g, weights=across[:, i], minlength=len(cores)) / w for i in range(3)], axis=1
+    )
+    centre[n < 1] = np.nan
+    return mean, spread, n, centre

@@ -31,11 +31,25 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
    The combination cancels their smoothing bias to second order (Richardson extrapolation)
    while averaging over about 0.3 m: on sparse scans it trades resolution for noise, which
    is what lets a 15 mm sag through (``pool=False`` turns it off).
-6. *Level of detection*:
+6. *Support*: a cylinder whose two epochs cover different parts of it (the centres of their
+   points across the normal more than ``max(0.25, 4 chance deviations)`` radii apart: the edge
+   of a hole, of the scan, of a shadow), that holds fewer than 5 points of an epoch, or that
+   is still more than twice (and 10 mm) rougher than the median cylinder after widening (no
+   single surface: the floor in one epoch, the conveyor's frame in the other) gets no value
+   (NaN, flagged ``unsupported``): one epoch's one-sided mean takes in the relief between the
+   two parts, and these were the tails of the field (values beyond 10 mm on unchanged rock).
+7. *Scale from the data*: where the value of steps 4-5 exceeds three times its LoD95 (a
+   change no noise explains: flat rock reaches it in about 1e-8 of its cores), the core is
+   read at the finest support instead, its own cylinder with the smoothing bias taken out in
+   full (``beta = 1``), so a narrow or strong change reads at its full size while flat rock
+   keeps the quiet, pooled value (in the spirit of multi-scale M3C2: the smallest support
+   whose level of detection still separates the change from noise).
+8. *Level of detection*:
    ``lod95 = 1.96 (se' + registration_sigma)``, ``se = sqrt(s_r^2 / n_r + s_c^2 / n_c)``
    from the spread ``s`` and count ``n`` of each epoch's cylinder, ``se' = se (1 + 0.4 beta)``
-   where sharpened, and the pooled combination's propagated error where pooled (neighbouring
-   cylinders share points, which is counted); ``significant = |d| > lod95``.
+   where sharpened (``se (1 + 0.4)`` where read finely), and the pooled combination's
+   propagated error where pooled (neighbouring cylinders share points, which is counted);
+   ``significant = |d| > lod95``.
 
 Depth: the core lies on the compared surface, so compared points are taken within
 ``min(max_depth, cylinder_radius)`` of it along the normal; reference points first within the
@@ -103,6 +117,14 @@ __all__ = ["RobustDeformation", "robust_deformation", "voxel_cores"]
 logger = logging.getLogger(__name__)
 
 _Z95 = 1.959964
+_FINE_GATE = 3.0  # a change beyond this many LoD95 of the quiet estimate is read finely (pass 5);
+# flat rock reaches 3 LoD95 (5.9 standard errors) in about 1e-8 of its cores
+_SUPPORT_SHIFT = 0.25  # of the cylinder radius: largest distance between the centres of the two
+# epochs' points in a cylinder (about 0.05 r on full cover at 400 points/m^2; a hole's edge
+# through the axis moves one centre by 0.42 r)
+_SUPPORT_MIN_POINTS = 5  # fewer points of an epoch in the (widened) cylinder: no value
+_NONPLANAR_FACTOR = 2.0  # a cylinder rougher than this many times the median one, and by
+_NONPLANAR_EXCESS = 0.010  # at least this much (m), after widening holds no single surface
 _ROUGH_FACTOR = 1.5  # a cylinder this much rougher than the median one is measured wider,
 _ROUGH_EXCESS = 0.005  # and by at least this much, m: with a low-noise scanner (2 mm) the
 # curvature of a 30 mm sag alone makes its cylinders 1.5 times rougher, and widening them
@@ -146,6 +168,11 @@ class RobustDeformation:
         Half-length along the normal within which its reference points were taken, metres.
     meta : dict
         Parameters used and counts (cores, fallbacks, NaN cores).
+    unsupported : ndarray of bool, shape (N,)
+        Points whose cylinder held reference points but no supported estimate (the two
+        epochs cover different parts of it, too few points, no single surface): NaN, and
+        unlike a point without any reference surface in reach, not a case for another
+        estimator.
     """
 
     deformation: np.ndarray
@@ -164,6 +191,7 @@ class RobustDeformation:
     core_radius: np.ndarray
     core_ref_depth: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    unsupported: np.ndarray | None = None
 
 
 def _outward(centerline: Centerline, xyz: np.ndarray, workers: int) -> np.ndarray:
@@ -190,6 +218,7 @@ def robust_deformation(
     pool: bool = True,
     ref_mask: np.ndarray | None = None,
     cmp_mask: np.ndarray | None = None,
+    measure: np.ndarray | None = None,
     workers: int = -1,
     progress: ProgressCallback | None = None,
 ) -> RobustDeformation:
@@ -268,15 +297,22 @@ def robust_deformation(
     shift = np.eye(4)
     shift[:3, 3] = -origin
     line = centerline.transformed(shift)
-    cores, inverse = voxel_cores(cmp_ - origin, core_spacing)
+    n_all = len(cmp_)
+    if measure is not None:
+        measure = _check_mask(measure, n_all, "measure")
+        if not measure.any():
+            return _nothing_measured(n_all, cmp_.shape[1])
+    todo = cmp_ if measure is None else cmp_[measure]
+    cores, inverse = voxel_cores(todo - origin, core_spacing)
     n_cores = len(cores)
     notify(progress, "robust deformation", 0.0)
     # spatially sorted copies make the neighbour gathers cache-friendly
     ref_use = ref_use - origin
     ref_use = ref_use[_voxel_order(ref_use, core_spacing)]
-    cmp_core = inverse if cmp_mask is None else inverse[cmp_mask]
     order = _voxel_order(cmp_use - origin, core_spacing)
-    cmp_use, cmp_core = cmp_use[order] - origin, cmp_core[order]
+    cmp_use = cmp_use[order] - origin
+    if measure is None:
+        cmp_core = (inverse if cmp_mask is None else inverse[cmp_mask])[order]
 
     # pass 1: outward plane normal of the reference around each core (voxel moments)
     normal, variation = _voxel_normals(ref_use, cores, core_spacing, normal_radius)
@@ -287,7 +323,10 @@ def robust_deformation(
     notify(progress, "robust deformation", 0.2)
     # every point carries the normal of its nearest core: cylinders keep only the points of
     # the same surface (a wall cylinder near a corner drops the roof's points)
-    _, near = cKDTree(cores).query(ref_use, workers=workers)
+    core_tree = cKDTree(cores)
+    _, near = core_tree.query(ref_use, workers=workers)
+    if measure is not None:
+        _, cmp_core = core_tree.query(cmp_use, workers=workers)
     n32 = normal.astype(np.float32)
     index_radius = float(np.hypot(cylinder_radius, min(max_depth, cylinder_radius)))
     ref_epoch = _Epoch(ref_use, n32[near], index_radius)
@@ -298,7 +337,8 @@ def robust_deformation(
     # the compared points are taken within a short depth, and the reference first within the
     # same depth, then within max_depth where its surface was not found there
     short = min(max_depth, cylinder_radius)
-    out = {k: np.zeros(n_cores) for k in ("mr", "sr", "nr", "mc", "sc", "nc")}
+    out = {k: np.zeros(n_cores) for k in ("mr", "sr", "nr", "or", "mc", "sc", "nc", "oc")}
+    out["or"], out["oc"] = np.zeros((n_cores, 3)), np.zeros((n_cores, 3))
     radius_used = np.full(n_cores, cylinder_radius)
     depth_used = np.full(n_cores, short)
     n_deep = 0
@@ -315,7 +355,7 @@ def robust_deformation(
             if deep.any():
                 n_deep += int(deep.sum())
                 ref_deep = _epoch_stats(ref_epoch, c[deep], nrm[deep], cylinder_radius, max_depth)
-                for s_, w in zip(stats[:3], ref_deep, strict=True):
+                for s_, w in zip(stats[:4], ref_deep, strict=True):
                     s_[deep] = w
                 depth_used[np.arange(sl.start, sl.stop)[deep]] = max_depth
         for key, s_ in zip(out, stats, strict=True):
@@ -329,8 +369,10 @@ def robust_deformation(
     weak = (out["nr"] < min_points) | (out["nc"] < min_points)
     weak &= (out["nr"] > 0) & (out["nc"] > 0)
     n_sparse = int(weak.sum())
+    typicals = {}
     for key in ("sr", "sc"):
         typical = np.nanmedian(out[key]) if np.isfinite(out[key]).any() else np.inf
+        typicals[key] = typical
         with np.errstate(invalid="ignore"):
             rough = np.maximum(_ROUGH_FACTOR * typical, typical + _ROUGH_EXCESS)
             weak |= (out[key] > rough) & (variation <= _MAX_VARIATION)
@@ -339,15 +381,15 @@ def robust_deformation(
         ids = wide_ids[start : start + _CHUNK]
         c, nrm, rw = cores[ids], normal[ids], 2.0 * cylinder_radius
         ref_d = depth_used[ids]
-        stats = [np.zeros(len(ids)) for _ in range(6)]
+        stats = [np.zeros((len(ids), 3) if i % 4 == 3 else len(ids)) for i in range(8)]
         for depth in np.unique(ref_d):
             m = ref_d == depth
             for s_, w in zip(
-                stats[:3], _epoch_stats(ref_epoch, c[m], nrm[m], rw, depth), strict=True
+                stats[:4], _epoch_stats(ref_epoch, c[m], nrm[m], rw, depth), strict=True
             ):
                 s_[m] = w
         cmp_w = _epoch_stats(cmp_epoch, c, nrm, rw, short)
-        for s_, w in zip(stats[3:], cmp_w, strict=True):
+        for s_, w in zip(stats[4:], cmp_w, strict=True):
             s_[:] = w
         for key, w in zip(out, stats, strict=True):
             out[key][ids] = w
@@ -361,6 +403,24 @@ def robust_deformation(
 
     d_mean = out["mc"] - out["mr"]
     n_r, n_c = out["nr"], out["nc"]
+    # support: the two epochs must cover the same part of the cylinder; at the edge of a hole,
+    # of the scan or of a shadow one of them is one-sided and the difference of the means
+    # takes in the relief between the two parts (the tails of the field): no value there
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # on full cover the centres differ by chance by about r / 2 sqrt(1/n_r + 1/n_c) per
+        # axis: the limit stays 4 such deviations away (1 in 3,000 cores on flat rock)
+        chance = 0.5 * np.sqrt(1.0 / out["nr"] + 1.0 / out["nc"])
+        shift_limit = np.maximum(_SUPPORT_SHIFT, 4.0 * chance) * radius_used
+        one_sided = np.linalg.norm(out["or"] - out["oc"], axis=1) > shift_limit
+    unsupported = one_sided | (np.minimum(n_r, n_c) < _SUPPORT_MIN_POINTS)
+    # a cylinder still far rougher than the typical one at twice the width does not hold
+    # one surface (the floor seen in one epoch, the conveyor's frame in the other): no value
+    for key, typical in typicals.items():
+        with np.errstate(invalid="ignore"):
+            limit = np.maximum(_NONPLANAR_FACTOR * typical, typical + _NONPLANAR_EXCESS)
+            unsupported |= out[key] > limit
+    d_mean[unsupported] = np.nan
+    n_unsupported = int(unsupported.sum())
     with np.errstate(invalid="ignore", divide="ignore"):
         se = np.sqrt(out["sr"] ** 2 / n_r + out["sc"] ** 2 / n_c)
     # pass 4: take the smoothing bias out where the cylinders are dense enough to afford it,
@@ -388,11 +448,28 @@ def robust_deformation(
         d_mean[ids] = (1.0 - lam) * d_mean[ids] + lam * d_pool
         se_used[ids] = (1.0 - lam) * se_used[ids] + lam * se_pool
         n_pooled = int(ids.size)
+    # pass 5, the scale from the data: where the quiet estimate above (pooled on sparse scans)
+    # separates a change from noise by a wide margin, the change is real and is read at the
+    # finest support instead, the core's own cylinder with its smoothing bias taken out in
+    # full: a narrow or strong change reads at its full size, flat rock keeps the quiet value
+    with np.errstate(invalid="ignore"):
+        lod_quiet = _Z95 * (se_used + registration_sigma)
+        fine = np.isfinite(d_mean) & (np.abs(d_mean) > _FINE_GATE * lod_quiet)
+    fine &= variation <= _MAX_VARIATION
+    n_fine = int(fine.sum())
+    if fine.any() and sharpen:
+        d_fine = _sharpen(
+            cores, normal, variation, d_plain, fine.astype(float), spacing=core_spacing,
+            workers=workers,
+        )
+        d_mean = d_mean.copy()
+        d_mean[fine] = d_fine[fine]
+        se_used[fine] = se[fine] * (1.0 + _SHARPEN_GAIN)
     with np.errstate(invalid="ignore"):
         lod = _Z95 * (se_used + registration_sigma)
     lod[~np.isfinite(d_mean)] = np.nan
     point_core = _assign_cores(
-        cmp_ - origin,
+        todo - origin,
         inverse,
         cores,
         normal,
@@ -407,7 +484,7 @@ def robust_deformation(
             "%d of %d cores have no reference surface within %.2f m", n_nan, n_cores, max_depth
         )
     d, lod_p = _spread(
-        cmp_ - origin,
+        todo - origin,
         point_core,
         cores,
         normal,
@@ -418,17 +495,28 @@ def robust_deformation(
         workers=workers,
     )
     inverse = point_core
+    normal_p = normal[inverse]
+    unsupported_p = unsupported[inverse]
+    n_ref_p, n_cmp_p = n_r.astype(np.int32)[inverse], n_c.astype(np.int32)[inverse]
+    s_ref_p, s_cmp_p = out["sr"][inverse], out["sc"][inverse]
+    if measure is not None:  # back to every compared point (NaN / 0 / -1 where not measured)
+        d, lod_p, s_ref_p, s_cmp_p = (
+            _scatter(a, measure, np.nan) for a in (d, lod_p, s_ref_p, s_cmp_p)
+        )
+        n_ref_p, n_cmp_p = (_scatter(a, measure, 0) for a in (n_ref_p, n_cmp_p))
+        normal_p, inverse = _scatter(normal_p, measure, np.nan), _scatter(inverse, measure, -1)
+        unsupported_p = _scatter(unsupported_p, measure, False)
     with np.errstate(invalid="ignore"):
         significant = np.abs(d) > lod_p
     return RobustDeformation(
         deformation=d,
         lod95=lod_p,
         significant=significant,
-        normal=normal[inverse],
-        n_ref=n_r.astype(np.int32)[inverse],
-        n_cmp=n_c.astype(np.int32)[inverse],
-        sigma_ref=out["sr"][inverse],
-        sigma_cmp=out["sc"][inverse],
+        normal=normal_p,
+        n_ref=n_ref_p,
+        n_cmp=n_cmp_p,
+        sigma_ref=s_ref_p,
+        sigma_cmp=s_cmp_p,
         core=inverse,
         core_xyz=cores + origin,
         core_deformation=d_mean,
@@ -449,10 +537,46 @@ def robust_deformation(
             "sparse_cores": n_sparse,
             "deep_cylinder_cores": n_deep,
             "nan_cores": n_nan,
+            "unsupported_cores": n_unsupported,
             "sharpened_cores": int((beta > 0).sum()),
             "sharpen_strength_mean": float(beta[beta > 0].mean()) if beta.any() else 0.0,
             "pooled_cores": n_pooled,
+            "fine_cores": n_fine,
         },
+        unsupported=unsupported_p,
+    )
+
+
+def _scatter(values: np.ndarray, where: np.ndarray, fill: float) -> np.ndarray:
+    """``values`` (one row per True of ``where``) placed into an array of ``where``'s length,
+    ``fill`` elsewhere."""
+    out = np.full((where.size, *values.shape[1:]), fill, dtype=values.dtype)
+    out[where] = values
+    return out
+
+
+def _nothing_measured(n: int, dim: int) -> RobustDeformation:
+    """The result when no compared point is to be measured: NaN everywhere."""
+    nan = np.full(n, np.nan)
+    empty = np.empty((0, 3))
+    return RobustDeformation(
+        deformation=nan,
+        lod95=nan.copy(),
+        significant=np.zeros(n, dtype=bool),
+        normal=np.full((n, dim), np.nan),
+        n_ref=np.zeros(n, dtype=np.int32),
+        n_cmp=np.zeros(n, dtype=np.int32),
+        sigma_ref=nan.copy(),
+        sigma_cmp=nan.copy(),
+        core=np.full(n, -1, dtype=np.intp),
+        core_xyz=empty,
+        core_deformation=np.empty(0),
+        core_lod95=np.empty(0),
+        core_normal=empty,
+        core_radius=np.empty(0),
+        core_ref_depth=np.empty(0),
+        meta={"method": "robust", "cores": 0},
+        unsupported=np.zeros(n, dtype=bool),
     )
 
 
