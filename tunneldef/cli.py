@@ -279,6 +279,8 @@ def _apply_overrides(config: Any, args: argparse.Namespace) -> Any:
     changes = {k: v for k, v in (("danger", danger), ("deformation", deformation)) if v}
     if getattr(args, "registration", None):
         changes["registration"] = {"method": args.registration}
+    if getattr(args, "force", False):
+        changes["quality"] = {"enforce": False}
     return config.replace(**changes) if changes else config
 
 
@@ -412,6 +414,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration",
                    choices=["centerline", "icp_point", "icp_plane", "gicp", "ndt"],
                    help="registration method (default: centerline)")
+    p.add_argument("--force", action="store_true",
+                   help="write the result even if a quality check fails; the outputs (summary, "
+                   "LAS/PLY header) are then marked UNVERIFIED")
     p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("demo", parents=[common],

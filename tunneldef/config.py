@@ -27,6 +27,7 @@ __all__ = [
     "RegistrationConfig",
     "DeformationConfig",
     "DangerConfig",
+    "QualityConfig",
     "Config",
     "load_config",
     "dump_config",
@@ -211,6 +212,31 @@ class DangerConfig:
 
 
 @dataclass(frozen=True)
+class QualityConfig:
+    """The self-checks of every stage and their limits (``tunneldef.quality``)."""
+
+    enforce: bool = _p(True, "ours: a failed check stops detect with a one-line reason (exit 2); "
+                             "false (or the CLI's --force) writes the result marked 'unverified'")
+    min_usable_share: float = _p(0.5, "ours: at least half the slices of the kept centreline pass "
+                                      "must show a floor, a roof and two walls")
+    max_centre_residual: float = _p(0.05, "ours: 95th percentile distance of the used slice "
+                                          "centres from the curve, m (a few mm to 1 cm on "
+                                          "synthetic and real drifts; more: the curve does not "
+                                          "follow its own centres)")
+    max_fit_excess: float = _p(0.008, "ours: cross-epoch point-to-plane misfit the scans' own "
+                                      "noise does not explain, m (synthetic pairs: correct "
+                                      "1.8 mm, 2 cm lateral offset 9.8 mm, 0.1 deg yaw 8.6 mm)")
+    max_axial_disagreement: float = _p(3.0, "ours: section correlation and point-to-plane "
+                                            "slide must agree within 3 combined sigmas")
+    max_axial_spread: float = _p(1.0, "ours: equally good along-axis matches farther apart than "
+                                      "this leave the position undetermined, m")
+    max_significant_share: float = _p(0.25, "ours: share of shell points beyond their LoD95 "
+                                            "(robust estimator); about 5 % by chance plus the "
+                                            "truly deformed shell, far more after a wrong "
+                                            "registration")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole parameter tree."""
 
@@ -219,6 +245,7 @@ class Config:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
     danger: DangerConfig = field(default_factory=DangerConfig)
+    quality: QualityConfig = field(default_factory=QualityConfig)
 
     def replace(self, **sections: dict[str, Any]) -> Config:
         """A copy with some values of some sections changed, e.g.
