@@ -219,10 +219,10 @@ class QualityConfig:
                              "false (or the CLI's --force) writes the result marked 'unverified'")
     min_usable_share: float = _p(0.5, "ours: at least half the slices of the kept centreline pass "
                                       "must show a floor, a roof and two walls")
-    max_centre_residual: float = _p(0.05, "ours: 95th percentile distance of the used slice "
-                                          "centres from the curve, m (a few mm to 1 cm on "
-                                          "synthetic and real drifts; more: the curve does not "
-                                          "follow its own centres)")
+    max_curve_uncertainty: float = _p(0.03, "ours: 95 % uncertainty of a centreline from its "
+                                            "centres' scatter, m (p95 residual x sqrt(control "
+                                            "points / centres)); 3 cm is the accuracy the sweep "
+                                            "(benchmarks/sweep.py) holds centrelines to")
     max_fit_excess: float = _p(0.008, "ours: cross-epoch point-to-plane misfit the scans' own "
                                       "noise does not explain, m (synthetic pairs: correct "
                                       "1.8 mm, 2 cm lateral offset 9.8 mm, 0.1 deg yaw 8.6 mm)")

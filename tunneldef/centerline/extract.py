@@ -390,14 +390,25 @@ def _fit(
             f"the slices span {span:.1f} m of axis but the cloud can hold at most "
             f"{max_length:.1f} m of tunnel; the axis left the cloud"
         )
-    cl, fit = fit_centerline(
-        centres,
-        params=stations,
-        degree=c.degree,
-        ctrl_spacing=c.ctrl_spacing,
-        sample_step=c.sample_step,
-        meta={**meta, "n_slices": n_slices, "n_used": len(ok)},
-    )
+    # a curve turning tighter than half the section folds the section over itself when the
+    # cloud is re-sliced along it (sparse or noisy centres let the free ends hook): stiffen it,
+    # doubling the control-point spacing up to three times
+    half_width = 0.5 * float(np.median([r.width for r in ok]))
+    spacing = c.ctrl_spacing
+    for _ in range(4):
+        cl, fit = fit_centerline(
+            centres,
+            params=stations,
+            degree=c.degree,
+            ctrl_spacing=spacing,
+            sample_step=c.sample_step,
+            meta={**meta, "n_slices": n_slices, "n_used": len(ok), "ctrl_spacing_m": spacing},
+        )
+        if _min_radius(cl) >= half_width or spacing >= 8 * c.ctrl_spacing:
+            break
+        logger.info("centreline: turns tighter than the section; control points every %.0f m",
+                    2 * spacing)
+        spacing *= 2
     for r, w in zip(ok, fit.data_weights, strict=True):
         r.weight = float(w)
     return cl
@@ -448,6 +459,10 @@ class PassQuality:
         ``used / slices``.
     residual_p50, residual_p95 : float
         Median and 95th percentile distance of the used slice centres from the curve.
+    curve_uncertainty : float
+        About the 95 % uncertainty of the curve from its centres' scatter:
+        ``2.08 * residual_p50 * sqrt(control points / used centres)`` (each control point is the
+        least-squares mean of about ``used / control points`` centres).
     length, extent : float
         Length of the curve and the extent of the cloud along it (0.1-99.9 % chainage).
     cloud_distance, cloud_distance_limit : float
@@ -472,6 +487,7 @@ class PassQuality:
     usable_share: float
     residual_p50: float
     residual_p95: float
+    curve_uncertainty: float
     length: float
     extent: float
     cloud_distance: float
@@ -539,6 +555,10 @@ def _pass_quality(
         usable_share=len(ok) / max(len(records), 1),
         residual_p50=float(np.median(res)),
         residual_p95=float(np.percentile(res, 95)),
+        # (the median distance of 2-D Gaussian scatter is 1.18 sigma, its p95 2.45 sigma: the
+        # median, robust to the centres the fit gave no weight, times 2.08)
+        curve_uncertainty=2.08 * float(np.median(res))
+        * np.sqrt(len(cl.meta.get("ctrlpts", ok)) / max(len(ok), 1)),
         length=cl.length,
         extent=extent,
         cloud_distance=gap,
