@@ -226,10 +226,15 @@ class QualityConfig:
     max_fit_excess: float = _p(0.008, "ours: cross-epoch point-to-plane misfit the scans' own "
                                       "noise does not explain, m (synthetic pairs: correct "
                                       "1.8 mm, 2 cm lateral offset 9.8 mm, 0.1 deg yaw 8.6 mm)")
+    max_centreline_difference: float = _p(0.03, "ours: p95 distance between the two epochs' "
+                                                "registered centrelines / sqrt(2), m: about "
+                                                "either curve's p95 error; 3 cm as the sweep "
+                                                "holds centrelines to (benchmarks/sweep.py)")
     max_axial_disagreement: float = _p(3.0, "ours: section correlation and point-to-plane "
                                             "slide must agree within 3 combined sigmas")
-    max_axial_spread: float = _p(1.0, "ours: equally good along-axis matches farther apart than "
-                                      "this leave the position undetermined, m")
+    max_pose_mismatch: float = _p(1.0, "ours: the section images at the registered position "
+                                       "may match worse than at the best shift by at most "
+                                       "their noise (coarse_shift's own tolerance)")
     max_significant_share: float = _p(0.25, "ours: share of shell points beyond their LoD95 "
                                             "(robust estimator); about 5 % by chance plus the "
                                             "truly deformed shell, far more after a wrong "

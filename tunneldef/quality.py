@@ -192,10 +192,17 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                "noise allows (tilt or offset); check that both epochs show the same tunnel",
                f"cross-epoch point-to-plane sigma {check.cross_residual:.4f} m vs the epochs' "
                f"own {check.ref_residual:.4f} / {check.cmp_residual:.4f} m"),
-        _check("registration.axial_spread", check.coarse_spread, qc.max_axial_spread, "<=",
-               "m", "the position along the tunnel is undetermined: the common stretch has no "
-               "feature along the axis (chamber, bend, width change, rough rock)",
-               "spread of equally good section-correlation matches"),
+        _check("registration.centreline_difference", check.centreline_difference,
+               qc.max_centreline_difference, "<=", "m",
+               "the two epochs' centrelines do not agree after registration (sparse or noisy "
+               "sections, or a wrong registration); denser scans or a larger [slicing] "
+               "thickness may help", "p95 distance between the registered centrelines / sqrt(2)"),
+        _check("registration.axial_pose", check.pose_mismatch, qc.max_pose_mismatch, "<=",
+               "noise", "the section images match better at another position along the tunnel "
+               "than at the registered one; the registration may have slid",
+               f"section mismatch at the registered position vs the best shift, in units of "
+               f"its noise (best shift {check.coarse_shift:+.2f} m, equally good within "
+               f"{check.coarse_spread:.2f} m)"),
         _check("registration.axial_agreement", check.axial_disagreement,
                qc.max_axial_disagreement, "<=", "sigma",
                "section correlation and point-to-plane fit disagree on the position along the "

@@ -27,12 +27,13 @@ from scipy.spatial import cKDTree
 from ..curve import Centerline
 from ..spatial import random_subset
 from ..transforms import apply_transform
-from .axial import coarse_shift
+from .axial import _mismatch, coarse_shift, section_image
 from .views import axial_correction, normals
 
 __all__ = ["RegistrationCheck", "verify_registration"]
 
 _SAMPLE = 25_000  # points per epoch and half the checks use
+_IMAGE_SAMPLE = 200_000  # points per epoch of the section images (the registration's least)
 _REACH = 0.1  # m: correspondences farther apart are not the same surface
 _NORMAL_RADIUS = 0.15  # m, as the registration's normals
 
@@ -58,10 +59,22 @@ class RegistrationCheck:
         equally good matches (large: the overlap has no feature along the axis).
     fine_shift, fine_sigma : float
         Remaining along-axis shift by point-to-plane sliding, and its standard deviation.
+    centreline_difference : float
+        95th percentile distance between the registered compared centreline and the reference
+        one over the common stretch (1 m inside its ends), divided by sqrt(2): about the p95
+        error of either curve when both are equally good, plus what the registration leaves;
+        NaN without a compared centreline.
+    pose_mismatch : float
+        How much worse the section images match at the registered position than at the best
+        shift within the search, in units of the mismatch's own noise (``(score(0) / best -
+        1) / (3 sqrt(2 / n))``, the tolerance of :func:`.axial.coarse_shift`): <= 1 when the
+        registered position is among the equally good ones. Unlike ``coarse_shift`` it stays
+        meaningful on a stretch with several equally good matches.
     axial_disagreement : float
         ``|coarse_shift - fine_shift|`` expressed in units of their combined uncertainty
         (half a bin and ``fine_sigma`` added in quadrature); <= 3 when they agree; NaN when
-        the point-to-plane slide found nothing to hold on to.
+        the point-to-plane slide found nothing to hold on to or the section correlation has
+        equally good matches more than 1 m apart (then ``pose_mismatch`` judges).
     """
 
     cross_residual: float
@@ -74,6 +87,8 @@ class RegistrationCheck:
     fine_shift: float
     fine_sigma: float
     axial_disagreement: float
+    centreline_difference: float = np.nan
+    pose_mismatch: float = np.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (non-finite values become None)."""
@@ -95,6 +110,7 @@ def verify_registration(
     ref_centerline: Centerline,
     *,
     transform: np.ndarray | None = None,
+    cmp_centerline: Centerline | None = None,
     search: float = 10.0,
 ) -> RegistrationCheck:
     """Independent figures of a registration (see the module notes).
@@ -110,23 +126,30 @@ def verify_registration(
         The reference centreline (reference frame).
     transform : ndarray, shape (4, 4), optional
         Compared -> reference transform (applied to a subsample only).
+    cmp_centerline : Centerline, optional
+        The compared epoch's centreline in its own frame (``transform`` is applied).
     search : float
-        Largest along-axis shift the section correlation looks for, metres.
+        Largest along-axis shift the section correlation looks for, metres (at most a quarter
+        of the common stretch is searched, at least 2 m).
 
     Returns
     -------
     RegistrationCheck
     """
     origin = np.asarray(ref_xyz[0], dtype=np.float64)
-    ref = random_subset(np.asarray(ref_xyz) - origin, 2 * _SAMPLE, 11)
-    cmp = random_subset(np.asarray(cmp_xyz), 2 * _SAMPLE, 12)
+    # the section images want many points (as many as the registration used), the plane fits
+    # far fewer: a large random subset for the first, its head for the second
+    ref_big = random_subset(np.asarray(ref_xyz) - origin, _IMAGE_SAMPLE, 11)
+    cmp_big = random_subset(np.asarray(cmp_xyz), _IMAGE_SAMPLE, 12)
     if transform is not None:
-        cmp = apply_transform(np.asarray(transform, dtype=np.float64), cmp)
-    cmp = cmp - origin
+        cmp_big = apply_transform(np.asarray(transform, dtype=np.float64), cmp_big)
+    cmp_big = cmp_big - origin
     cl = ref_centerline.transformed(_shift_matrix(-origin))
     # only the stretch both epochs cover, 0.5 m inside the reference's ends
-    pc = cl.project(cmp)
-    cmp = cmp[(pc.chainage > 0.5) & (pc.chainage < cl.length - 0.5)]
+    mp = cl.project(cmp_big)
+    inside = (mp.chainage > 0.5) & (mp.chainage < cl.length - 0.5)
+    ref = ref_big[: 2 * _SAMPLE]
+    cmp = cmp_big[inside][: 2 * _SAMPLE]
     ref_a, ref_b = ref[0::2], ref[1::2]
     cmp_a, cmp_b = cmp[0::2], cmp[1::2]
     ref_bn = normals(ref_b, _NORMAL_RADIUS)
@@ -142,17 +165,31 @@ def verify_registration(
     ratio = cross / own if own > 0 and np.isfinite(own) else np.inf
     excess = float(np.sqrt(max(cross**2 - own**2, 0.0))) if np.isfinite(ratio) else np.inf
 
-    rp = cl.project(ref)
-    mp = cl.project(cmp)
-    c_shift, c_spread = coarse_shift(
-        (rp.chainage, rp.lateral, rp.vertical), (mp.chainage, mp.lateral, mp.vertical), cl,
-        search=search,
-    )
+    rp = cl.project(ref_big)
+    # a quarter of the common stretch at most: beyond it a short overlap matches partial
+    # overlaps of itself as well as the true one
+    common = float(np.percentile(mp.chainage, 99) - np.percentile(mp.chainage, 1))
+    reach = float(np.clip(0.25 * common, 2.0, search))
+    ref_proj = (rp.chainage, rp.lateral, rp.vertical)
+    cmp_proj = (mp.chainage, mp.lateral, mp.vertical)
+    c_shift, c_spread = coarse_shift(ref_proj, cmp_proj, cl, search=reach)
+    pose_ratio = _pose_ratio(ref_proj, cmp_proj, cl, reach)
     _, fine = axial_correction(ref, normals(ref, _NORMAL_RADIUS), cmp, cl)
     combined = float(np.hypot(0.125, fine.uncertainty))
     # without a point-to-plane solution (no surface across the axis) there is nothing to
     # compare: NaN, and the spread of the section correlation decides alone
-    disagreement = abs(c_shift - fine.shift) / combined if fine.informative else np.nan
+    disagreement = (
+        abs(c_shift - fine.shift) / combined
+        if fine.informative and c_spread <= _DETERMINED
+        else np.nan
+    )
+    difference = np.nan
+    if cmp_centerline is not None:
+        cc = cmp_centerline if transform is None else cmp_centerline.transformed(transform)
+        pc = ref_centerline.project(cc.points)
+        keep = (pc.chainage > 1.0) & (pc.chainage < ref_centerline.length - 1.0)
+        if keep.sum() >= 10:
+            difference = float(np.percentile(pc.distance[keep], 95)) / np.sqrt(2.0)
     return RegistrationCheck(
         cross_residual=cross,
         ref_residual=own_ref,
@@ -164,7 +201,35 @@ def verify_registration(
         fine_shift=float(fine.shift),
         fine_sigma=float(fine.uncertainty),
         axial_disagreement=float(disagreement),
+        centreline_difference=difference,
+        pose_mismatch=pose_ratio,
     )
+
+
+_DETERMINED = 1.0  # m: a coarse spread up to this is one basin (the registration's rule)
+
+
+def _pose_ratio(
+    ref_proj: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cmp_proj: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cl: Centerline,
+    search: float,
+    step: float = 0.25,
+) -> float:
+    nb = int(np.ceil((cl.length + 2 * search) / step))
+    ref_img, _ = section_image(*ref_proj, start=-search, step=step, n_bins=nb)
+    cmp_img, _ = section_image(*cmp_proj, start=-search, step=step, n_bins=nb)
+    n_cmp = int(np.isfinite(cmp_img).sum())
+    kmax = int(np.ceil(search / step))
+    shifts = np.arange(-kmax, kmax + 1)
+    scores, _, _ = _mismatch(ref_img, cmp_img, shifts, clip=0.3,
+                             min_cells=max(int(0.3 * n_cmp), 10))
+    best = float(np.min(scores))
+    at_zero = float(scores[kmax])
+    if not (np.isfinite(best) and np.isfinite(at_zero)) or best <= 0:
+        return np.nan
+    noise = 3.0 * np.sqrt(2.0 / max(n_cmp // 4, 1))
+    return (at_zero / best - 1.0) / noise
 
 
 def _shift_matrix(t: np.ndarray) -> np.ndarray:
