@@ -219,6 +219,10 @@ class QualityConfig:
                              "false (or the CLI's --force) writes the result marked 'unverified'")
     min_usable_share: float = _p(0.5, "ours: at least half the slices of the kept centreline pass "
                                       "must show a floor, a roof and two walls")
+    max_centre_residual: float = _p(0.05, "ours: 95th percentile distance of the used slice "
+                                          "centres from the curve, m (below 3 cm on dense "
+                                          "synthetic and real drifts; a curve 6 cm off its "
+                                          "centres in places is not their centreline)")
     max_curve_uncertainty: float = _p(0.03, "ours: 95 % uncertainty of a centreline from its "
                                             "centres' scatter, m (p95 residual x sqrt(control "
                                             "points / centres)); 3 cm is the accuracy the sweep "

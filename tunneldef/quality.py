@@ -175,6 +175,9 @@ def centerline_checks(extraction: Any, qc: QualityConfig, epoch: str) -> list[Ch
         _check(f"{name}.curve_uncertainty", q.curve_uncertainty, qc.max_curve_uncertainty, "<=",
                "m", advice, f"centre residuals p50 {q.residual_p50:.4f} m, p95 "
                f"{q.residual_p95:.4f} m over {q.used} centres"),
+        _check(f"{name}.centre_residual_p95", q.residual_p95, qc.max_centre_residual, "<=", "m",
+               advice, "95th percentile distance of the used slice centres from the curve "
+               "(centres the curve does not follow: a gap bridged, a section misread)"),
         _check(f"{name}.cloud_distance", q.cloud_distance, q.cloud_distance_limit, "<=", "m",
                advice, "largest distance of a curve sample from the cloud; limit half the "
                "section diagonal + 0.5 m"),
