@@ -17,6 +17,23 @@ Steps of :func:`extract_centerline`:
    is therefore re-sliced normal to the fitted curve (chainage, lateral, vertical from
    :meth:`Centerline.project`) and refitted until the curve moves less than
    ``converge_tol`` or ``max_iterations`` passes are done.
+
+Why re-slicing could run away, and what keeps it safe: a least-squares curve has free ends,
+and where the end centres are sparse or noisy the end hooks. Projection used to scale the
+chainage of every point beyond such an end by the end's curvature, so the next pass sliced the
+end obliquely and over a stretched chainage, its centres hooked further, and the curve moved by
+metres from pass to pass (and grew longer than the cloud). Now: beyond its ends a curve goes on
+straight (:meth:`Centerline.project`); a curve turning tighter than half its section is
+stiffened (control points twice as far apart, up to 8x); in a re-slicing pass a slice centre
+farther from the curve it was cut along than a trust radius (half the width, then three times
+the last move) is rejected; every pass is judged (:class:`PassQuality`: residuals, usable
+share, length against the cloud's extent along it, distance to the cloud, tightest turn, move
+against the trust radius) and one that is impossible, or fits its centres clearly worse than
+the best so far, ends the iteration. The last pass is kept when the passes settled, the
+best-scoring one when they did not; if not even the first is possible, NotATunnelError. The
+slices' span is checked against the longest centreline the cloud can hold
+(:func:`plausible_length`) before a curve is sampled, so no time or memory goes into a curve
+the data cannot have.
 """
 
 from __future__ import annotations
