@@ -235,7 +235,8 @@ class QualityConfig:
                                                 "either curve's p95 error; 3 cm as the sweep "
                                                 "holds centrelines to (benchmarks/sweep.py)")
     max_axial_disagreement: float = _p(3.0, "ours: section correlation and point-to-plane "
-                                            "slide must agree within 3 combined sigmas")
+                                            "slide, and the slide at two normal scales, must "
+                                            "agree within 3 combined sigmas")
     max_pose_mismatch: float = _p(1.0, "ours: the section images at the registered position "
                                        "may match worse than at the best shift by at most "
                                        "their noise (coarse_shift's own tolerance)")

@@ -206,6 +206,12 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                f"section mismatch at the registered position vs the best shift, in units of "
                f"its noise (best shift {check.coarse_shift:+.2f} m, equally good within "
                f"{check.coarse_spread:.2f} m)"),
+        _check("registration.axial_scales", check.scale_disagreement,
+               qc.max_axial_disagreement, "<=", "sigma",
+               "the surfaces that fix the position along the tunnel give different answers at "
+               "0.15 m and 0.3 m scale (relief drowned in noise); the position is not "
+               "verified", f"point-to-plane slide {check.fine_shift:+.4f} m (normals over "
+               f"0.15 m) vs {check.wide_shift:+.4f} m (0.3 m)"),
         _check("registration.axial_agreement", check.axial_disagreement,
                qc.max_axial_disagreement, "<=", "sigma",
                "section correlation and point-to-plane fit disagree on the position along the "
