@@ -327,6 +327,8 @@ def _apply_overrides(config: Any, args: argparse.Namespace) -> Any:
     changes = {k: v for k, v in (("danger", danger), ("deformation", deformation)) if v}
     if getattr(args, "registration", None):
         changes["registration"] = {"method": args.registration}
+    if getattr(args, "force", False):
+        changes["quality"] = {"enforce": False}
     return config.replace(**changes) if changes else config
 
 
@@ -469,6 +471,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(adds the uint16 field 'branch'; sections and danger zones per branch)")
     p.add_argument("--no-drift-correction", action="store_true",
                    help="with --network: no piecewise-rigid SLAM-drift correction")
+    p.add_argument("--force", action="store_true",
+                   help="write the result even if a quality check fails; the outputs (summary, "
+                   "LAS/PLY header) are then marked UNVERIFIED")
     p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("demo", parents=[common],

@@ -28,6 +28,7 @@ __all__ = [
     "DeformationConfig",
     "DangerConfig",
     "NetworkConfig",
+    "QualityConfig",
     "Config",
     "load_config",
     "dump_config",
@@ -245,6 +246,41 @@ class NetworkConfig:
 
 
 @dataclass(frozen=True)
+class QualityConfig:
+    """The self-checks of every stage and their limits (``tunneldef.quality``)."""
+
+    enforce: bool = _p(True, "ours: a failed check stops detect with a one-line reason (exit 2); "
+                             "false (or the CLI's --force) writes the result marked 'unverified'")
+    min_usable_share: float = _p(0.5, "ours: at least half the slices of the kept centreline pass "
+                                      "must show a floor, a roof and two walls")
+    max_centre_residual: float = _p(0.05, "ours: 95th percentile distance of the used slice "
+                                          "centres from the curve, m (below 3 cm on dense "
+                                          "synthetic and real drifts; a curve 6 cm off its "
+                                          "centres in places is not their centreline)")
+    max_curve_uncertainty: float = _p(0.03, "ours: 95 % uncertainty of a centreline from its "
+                                            "centres' scatter, m (p95 residual x sqrt(control "
+                                            "points / centres)); 3 cm is the accuracy the sweep "
+                                            "(benchmarks/sweep.py) holds centrelines to")
+    max_fit_excess: float = _p(0.008, "ours: cross-epoch point-to-plane misfit the scans' own "
+                                      "noise does not explain, m (synthetic pairs: correct "
+                                      "1.8 mm, 2 cm lateral offset 9.8 mm, 0.1 deg yaw 8.6 mm)")
+    max_centreline_difference: float = _p(0.03, "ours: p95 distance between the two epochs' "
+                                                "registered centrelines / sqrt(2), m: about "
+                                                "either curve's p95 error; 3 cm as the sweep "
+                                                "holds centrelines to (benchmarks/sweep.py)")
+    max_axial_disagreement: float = _p(3.0, "ours: section correlation and point-to-plane "
+                                            "slide, and the slide at two normal scales, must "
+                                            "agree within 3 combined sigmas")
+    max_pose_mismatch: float = _p(1.0, "ours: the section images at the registered position "
+                                       "may match worse than at the best shift by at most "
+                                       "their noise (coarse_shift's own tolerance)")
+    max_significant_share: float = _p(0.25, "ours: share of shell points beyond their LoD95 "
+                                            "(robust estimator); about 5 % by chance plus the "
+                                            "truly deformed shell, far more after a wrong "
+                                            "registration")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole parameter tree."""
 
@@ -254,6 +290,7 @@ class Config:
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
     danger: DangerConfig = field(default_factory=DangerConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
+    quality: QualityConfig = field(default_factory=QualityConfig)
 
     def replace(self, **sections: dict[str, Any]) -> Config:
         """A copy with some values of some sections changed, e.g.

@@ -199,6 +199,11 @@ class Centerline:
         u = np.einsum("ij,ij->i", d, t[j])
         d -= u[:, None] * t[j]
         scale = 1.0 - np.einsum("ij,ij->i", d, self._curvature()[j])
+        # beyond the ends the curve goes on straight along its end tangents: no bend to
+        # correct for (scaling there stretched the chainage of every point past a curved end,
+        # and re-slicing along such a curve ran away)
+        beyond = ((j == 0) & (u < 0)) | ((j == len(self.chainage) - 1) & (u > 0))
+        scale[beyond] = 1.0
         s = self.chainage[j] + u / np.maximum(scale, 0.1)
         lateral = np.einsum("ij,ij->i", d, lat[j])
         vertical = np.einsum("ij,ij->i", d, ver[j])

@@ -23,6 +23,13 @@ from .curve import Centerline
 from .errors import EpochMismatchError, RegistrationError
 from .frame import principal_frame
 from .progress import ProgressCallback, notify, under
+from .quality import (
+    UNVERIFIED,
+    QualityReport,
+    centerline_checks,
+    deformation_checks,
+    registration_checks,
+)
 
 __all__ = ["detect", "detect_network", "register_epochs", "check_epochs", "Result",
            "NetworkResult", "RegisteredPair",
@@ -67,6 +74,8 @@ class RegisteredPair:
     ref_extraction: Any
     cmp_extraction: Any
     registration: Any
+    quality: QualityReport = field(default_factory=QualityReport)
+    registration_check: Any = None
 
 
 def register_epochs(
@@ -85,9 +94,12 @@ def register_epochs(
 
     config = config or Config()
     check_epochs(ref, cmp)
+    report = QualityReport(enforced=config.quality.enforce)
     lines = {"slicing": config.slicing, "settings": config.centerline}
     ref_ex = extract_centerline(ref.xyz, **lines, progress=under(progress, "reference centreline"))
+    report.add(centerline_checks(ref_ex, config.quality, "reference"))
     cmp_ex = extract_centerline(cmp.xyz, **lines, progress=under(progress, "compared centreline"))
+    report.add(centerline_checks(cmp_ex, config.quality, "compared"))
     _check_section_sizes(ref_ex, cmp_ex)
     reg = register(ref.xyz, cmp.xyz, ref_ex.centerline, cmp_ex.centerline,
                    method=config.registration.method, settings=config.registration,
@@ -100,7 +112,17 @@ def register_epochs(
             "along the axis (chamber, bend, width change, rough rock); set "
             "registration.max_axial_uncertainty = inf to accept it anyway"
         )
-    return RegisteredPair(ref_ex, cmp_ex, reg)
+    check = None
+    if reg.method == "centerline":
+        from .registration.verify import verify_registration
+
+        notify(progress, "registration check", 0.0)
+        check = verify_registration(ref.xyz, cmp.xyz, ref_ex.centerline, transform=reg.transform,
+                                    cmp_centerline=cmp_ex.centerline,
+                                    search=config.registration.axial_search or 10.0)
+        notify(progress, "registration check", 1.0)
+        report.add(registration_checks(check, config.quality))
+    return RegisteredPair(ref_ex, cmp_ex, reg, report, check)
 
 
 def _check_section_sizes(ref_ex: Any, cmp_ex: Any) -> None:
@@ -144,6 +166,7 @@ class Result:
     ref_slices: list[Any] = field(default_factory=list)
     cmp_slices: list[Any] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    quality: QualityReport | None = None
 
     def statistics(self) -> dict[str, Any]:
         """Global statistics of the signed deformation on shell points (m)."""
@@ -179,6 +202,7 @@ class Result:
             "timings_s": self.timings,
             "sign_convention": "negative = the surface moved into the tunnel (roof sag, wall "
                                "bulge, floor heave); positive = outward",
+            "quality": self.quality.to_dict() if self.quality is not None else None,
         }
 
 
@@ -242,8 +266,16 @@ def detect(
             f"only {100 * overlap:.0f} % of the compared points lie along the reference "
             "centreline after registration; do the epochs cover the same tunnel?"
         )
+    # the registration's error along the surface normals: the misfit the scans' own noise
+    # does not explain (tunneldef.registration.verify)
+    check = reg_all.registration_check
+    reg_sigma = float(check.excess) if check is not None and np.isfinite(check.excess) else 0.0
     d = compute_deformation(ref.xyz, moved.xyz, ref_cl, settings=config.deformation,
-                            projection=projection, progress=under(progress, "deformation"))
+                            projection=projection, registration_sigma=reg_sigma,
+                            progress=under(progress, "deformation"))
+    reg_all.quality.add(deformation_checks(d, config.quality))
+    if not reg_all.quality.verified:
+        log.warning("%s: %s", UNVERIFIED, "; ".join(c.reason() for c in reg_all.quality.failed))
     timings["deformation"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -258,6 +290,8 @@ def detect(
     fields = d.fields()
     fields["danger"] = np.asarray(danger, dtype=np.uint8)
     moved.add_fields(fields)
+    if not reg_all.quality.verified:
+        moved.meta["note"] = UNVERIFIED
     notify(progress, "sections and danger zones", 1.0)
     timings["sections_and_danger"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
@@ -276,6 +310,7 @@ def detect(
         ref_slices=list(reg_all.ref_extraction.slices),
         cmp_slices=list(reg_all.cmp_extraction.slices),
         timings=timings,
+        quality=reg_all.quality,
     )
 
 

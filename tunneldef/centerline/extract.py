@@ -17,6 +17,23 @@ Steps of :func:`extract_centerline`:
    is therefore re-sliced normal to the fitted curve (chainage, lateral, vertical from
    :meth:`Centerline.project`) and refitted until the curve moves less than
    ``converge_tol`` or ``max_iterations`` passes are done.
+
+Why re-slicing could run away, and what keeps it safe: a least-squares curve has free ends,
+and where the end centres are sparse or noisy the end hooks. Projection used to scale the
+chainage of every point beyond such an end by the end's curvature, so the next pass sliced the
+end obliquely and over a stretched chainage, its centres hooked further, and the curve moved by
+metres from pass to pass (and grew longer than the cloud). Now: beyond its ends a curve goes on
+straight (:meth:`Centerline.project`); a curve turning tighter than half its section is
+stiffened (control points twice as far apart, up to 8x); in a re-slicing pass a slice centre
+farther from the curve it was cut along than a trust radius (half the width, then three times
+the last move) is rejected; every pass is judged (:class:`PassQuality`: residuals, usable
+share, length against the cloud's extent along it, distance to the cloud, tightest turn, move
+against the trust radius) and one that is impossible, or fits its centres clearly worse than
+the best so far, ends the iteration. The last pass is kept when the passes settled, the
+best-scoring one when they did not; if not even the first is possible, NotATunnelError. The
+slices' span is checked against the longest centreline the cloud can hold
+(:func:`plausible_length`) before a curve is sampled, so no time or memory goes into a curve
+the data cannot have.
 """
 
 from __future__ import annotations
@@ -27,6 +44,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..cloud import check_points
 from ..config import CenterlineConfig, SlicingConfig
@@ -44,6 +62,8 @@ __all__ = [
     "Projection",
     "SliceRecord",
     "CenterlineResult",
+    "PassQuality",
+    "plausible_length",
     "extract_centerline",
     "analyse_slice",
 ]
@@ -150,6 +170,9 @@ class CenterlineResult:
     leans : (float, float)
         Lean dv/dz of the left and right walls (0 = vertical), measured once per cloud; leaning
         walls are measured at the middle of the wall band.
+    quality : list of PassQuality
+        Every pass's quality figures (also rejected passes); ``quality_of_curve`` is the
+        chosen one's.
     """
 
     centerline: Centerline
@@ -161,6 +184,12 @@ class CenterlineResult:
     settings: CenterlineConfig = field(default_factory=CenterlineConfig)
     roll: float = 0.0
     leans: tuple[float, float] = (0.0, 0.0)
+    quality: list[PassQuality] = field(default_factory=list)
+
+    @property
+    def quality_of_curve(self) -> PassQuality | None:
+        """Quality figures of the pass that gave :attr:`centerline` (None if unknown)."""
+        return next((q for q in self.quality if q.number == self.passes), None)
 
     def table(self) -> list[dict[str, Any]]:
         """One dict per slice (see :meth:`SliceRecord.row`), for CSV."""
@@ -352,7 +381,9 @@ def _curve_to_world(axis: Centerline) -> Callable[[np.ndarray], np.ndarray]:
     return f
 
 
-def _fit(records: list[SliceRecord], c: CenterlineConfig, meta: dict) -> Centerline:
+def _fit(
+    records: list[SliceRecord], c: CenterlineConfig, meta: dict, max_length: float = np.inf
+) -> Centerline:
     ok = [r for r in records if r.ok]
     n_slices = len(records)
     if len(ok) < max(c.min_slices, c.degree + 1):
@@ -369,14 +400,32 @@ def _fit(records: list[SliceRecord], c: CenterlineConfig, meta: dict) -> Centerl
         )
     centres = np.array([r.centre for r in ok])
     stations = np.array([r.station for r in ok])
-    cl, fit = fit_centerline(
-        centres,
-        params=stations,
-        degree=c.degree,
-        ctrl_spacing=c.ctrl_spacing,
-        sample_step=c.sample_step,
-        meta={**meta, "n_slices": n_slices, "n_used": len(ok)},
-    )
+    span = float(stations[-1] - stations[0])
+    if not span <= max_length:
+        # checked before the curve is sampled: its sample count grows with this span
+        raise NotATunnelError(
+            f"the slices span {span:.1f} m of axis but the cloud can hold at most "
+            f"{max_length:.1f} m of tunnel; the axis left the cloud"
+        )
+    # a curve turning tighter than half the section folds the section over itself when the
+    # cloud is re-sliced along it (sparse or noisy centres let the free ends hook): stiffen it,
+    # doubling the control-point spacing up to three times
+    half_width = 0.5 * float(np.median([r.width for r in ok]))
+    spacing = c.ctrl_spacing
+    for _ in range(4):
+        cl, fit = fit_centerline(
+            centres,
+            params=stations,
+            degree=c.degree,
+            ctrl_spacing=spacing,
+            sample_step=c.sample_step,
+            meta={**meta, "n_slices": n_slices, "n_used": len(ok), "ctrl_spacing_m": spacing},
+        )
+        if _min_radius(cl) >= half_width or spacing >= 8 * c.ctrl_spacing:
+            break
+        logger.info("centreline: turns tighter than the section; control points every %.0f m",
+                    2 * spacing)
+        spacing *= 2
     for r, w in zip(ok, fit.data_weights, strict=True):
         r.weight = float(w)
     return cl
@@ -388,6 +437,184 @@ def _shift(new: Centerline, old: Centerline) -> float:
     p = old.project(new.points)
     d = p.distance[p.inside]
     return float(np.percentile(d, 95)) if d.size else np.inf
+
+
+_MIN_DRIFT_WIDTH = 1.0  # m: no drift is narrower; bounds a centreline's length by the plan area
+_PLAN_CELL = 0.5  # m: plan cells of that bound
+_CENTRE_NOISE = 0.005  # m: slice centres scatter this much (fit_nurbs's sigma floor); scores
+# closer than this are alike
+_CLOUD_MARGIN = 0.5  # m: a curve sample may lie this much farther from the cloud than the
+# half-diagonal of the section before it counts as outside the cloud (holes, noise)
+
+
+def plausible_length(xyz: np.ndarray) -> float:
+    """The longest centreline a cloud can hold, metres.
+
+    A drift at least ``_MIN_DRIFT_WIDTH`` (1 m) wide cannot have a centreline longer than the
+    cloud's occupied plan area (0.5 m cells) divided by that width, nor shorter than its
+    bounding-box diagonal; the larger of the two is returned. It bounds what a fit may be
+    asked to sample (time and memory grow with the length, not with the data).
+    """
+    pts = np.asarray(xyz, dtype=np.float64)
+    cells = np.unique(np.floor((pts[:, :2] - pts[:, :2].min(axis=0)) / _PLAN_CELL), axis=0)
+    area = len(cells) * _PLAN_CELL**2
+    diagonal = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    return max(area / _MIN_DRIFT_WIDTH, diagonal)
+
+
+@dataclass
+class PassQuality:
+    """How good one slicing pass's curve is, and whether it is possible at all (metres).
+
+    Attributes
+    ----------
+    number : int
+        Pass number (1 = along the PCA axis).
+    slices, used : int
+        Slices cut and slices whose centre was used.
+    usable_share : float
+        ``used / slices``.
+    residual_p50, residual_p95 : float
+        Median and 95th percentile distance of the used slice centres from the curve.
+    curve_uncertainty : float
+        About the 95 % uncertainty of the curve from its centres' scatter:
+        ``2.08 * residual_p50 * sqrt(control points / used centres)`` (each control point is the
+        least-squares mean of about ``used / control points`` centres).
+    length, extent : float
+        Length of the curve and the extent of the cloud along it (0.1-99.9 % chainage).
+    cloud_distance, cloud_distance_limit : float
+        Largest distance from a curve sample (every 0.5 m) to the nearest cloud point, and the
+        most a curve inside the tunnel can show: half the section's diagonal plus 0.5 m.
+    min_radius, min_radius_limit : float
+        Tightest radius of curvature (over 1 m) and half the section width: a tighter turn
+        folds the section over itself, so re-slicing along it mixes chainages.
+    shift, trust_radius : float
+        How far the curve moved from the previous pass (p95), and the most it was allowed to
+        (NaN in pass 1).
+    possible : bool
+        False if the curve is longer than the cloud along it, leaves the cloud, turns tighter
+        than the section, or moved beyond the trust radius.
+    reason : str
+        Why it is not possible ("" if it is).
+    """
+
+    number: int
+    slices: int
+    used: int
+    usable_share: float
+    residual_p50: float
+    residual_p95: float
+    curve_uncertainty: float
+    length: float
+    extent: float
+    cloud_distance: float
+    cloud_distance_limit: float
+    min_radius: float
+    min_radius_limit: float
+    shift: float = np.nan
+    trust_radius: float = np.nan
+    possible: bool = True
+    reason: str = ""
+
+    @property
+    def score(self) -> float:
+        """The pass's quality measure, lower is better: the median centre residual divided by
+        the share of usable slices (a curve that fits fewer centres, or fits them worse, is
+        worse), metres."""
+        return self.residual_p50 / max(self.usable_share, 1e-9)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form."""
+        out = {k: v for k, v in self.__dict__.items()}
+        out["score"] = self.score
+        return {k: (float(v) if isinstance(v, (float, np.floating)) else v)
+                for k, v in out.items()}
+
+
+def _section_size(records: list[SliceRecord]) -> tuple[float, float]:
+    ok = [r for r in records if r.ok]
+    if not ok:
+        return np.nan, np.nan
+    return (float(np.median([r.width for r in ok])), float(np.median([r.height for r in ok])))
+
+
+def _min_radius(cl: Centerline, step: float = 1.0) -> float:
+    """Tightest radius of curvature of a curve, from its tangents ``step`` metres apart."""
+    if cl.length < 2 * step:
+        return np.inf
+    s = np.arange(0.0, cl.length + 1e-9, step)
+    t = cl.frame_at(s)[0]
+    cosang = np.clip(np.einsum("ij,ij->i", t[1:], t[:-1]), -1.0, 1.0)
+    ang = np.arccos(cosang)
+    big = float(ang.max()) if ang.size else 0.0
+    return step / big if big > 1e-12 else np.inf
+
+
+def _pass_quality(
+    number: int,
+    cl: Centerline,
+    records: list[SliceRecord],
+    tree: cKDTree,
+    shift: float = np.nan,
+    trust: float = np.nan,
+) -> PassQuality:
+    ok = [r for r in records if r.ok]
+    width, height = _section_size(records)
+    res = cl.project(np.array([r.centre for r in ok])).distance if ok else np.array([np.inf])
+    s = cl.project(tree.data).chainage
+    extent = float(np.percentile(s, 99.9) - np.percentile(s, 0.1))
+    samples = cl.point_at(np.linspace(0.0, cl.length, max(int(cl.length / 0.5), 1) + 1))
+    gap = float(tree.query(samples, workers=-1)[0].max())
+    q = PassQuality(
+        number=number,
+        slices=len(records),
+        used=len(ok),
+        usable_share=len(ok) / max(len(records), 1),
+        residual_p50=float(np.median(res)),
+        residual_p95=float(np.percentile(res, 95)),
+        # (the median distance of 2-D Gaussian scatter is 1.18 sigma, its p95 2.45 sigma: the
+        # median, robust to the centres the fit gave no weight, times 2.08)
+        curve_uncertainty=2.08 * float(np.median(res))
+        * np.sqrt(len(cl.meta.get("ctrlpts", ok)) / max(len(ok), 1)),
+        length=cl.length,
+        extent=extent,
+        cloud_distance=gap,
+        cloud_distance_limit=0.5 * float(np.hypot(width, height)) + _CLOUD_MARGIN,
+        min_radius=_min_radius(cl),
+        min_radius_limit=0.5 * width,
+        shift=shift,
+        trust_radius=trust,
+    )
+    reasons = []
+    if q.length > q.extent + 1.0:
+        reasons.append(f"the curve is {q.length:.1f} m long but the cloud extends only "
+                       f"{q.extent:.1f} m along it")
+    if not q.cloud_distance <= q.cloud_distance_limit:
+        reasons.append(f"the curve leaves the cloud ({q.cloud_distance:.2f} m from the nearest "
+                       f"point > {q.cloud_distance_limit:.2f} m)")
+    if q.min_radius < q.min_radius_limit:
+        reasons.append(f"the curve turns tighter than the section (radius {q.min_radius:.2f} m "
+                       f"< {q.min_radius_limit:.2f} m)")
+    if np.isfinite(trust) and not shift <= trust:
+        reasons.append(f"the curve moved {shift:.2f} m (p95) from the previous pass, more than "
+                       f"the trust radius {trust:.2f} m")
+    q.possible, q.reason = not reasons, "; ".join(reasons)
+    return q
+
+
+def _reject_centre_jumps(records: list[SliceRecord], trust: float) -> None:
+    """Reject slices of a re-slicing pass whose centre lies farther than ``trust`` from the
+    curve they were cut along (the curve lies inside the tunnel, so a centre farther away is a
+    wrong wall or floor line, not the tunnel moving)."""
+    for r in records:
+        if not r.ok:
+            continue
+        off = float(np.hypot((r.left + r.right) / 2, (r.floor + r.roof) / 2))
+        if off > trust:
+            r.ok, r.reason = (
+                False,
+                f"centre jumps: {off:.2f} m off the previous curve (trust radius {trust:.2f} m)",
+            )
 
 
 def extract_centerline(
@@ -447,30 +674,76 @@ def extract_centerline(
     leans = estimate_wall_leans(local, sl, c)
     if any(leans):
         logger.info("centreline: walls lean by %.3f / %.3f (dv/dz)", *leans)
+    max_length = plausible_length(pts)
+    tree = cKDTree(pts[:: max(1, len(pts) // 200_000)])
     records = _slice_pass(local, sl, c, progress, "centreline pass 1", leans)
     _centres(records, lambda loc: _local_to_world(loc, None, frame, roll))
-    centerline = _fit(records, c, {"pass": 1, "axis": "pca"})
-    axis: Centerline | None = None
-    passes, shifts = 1, []
+    centerline = _fit(records, c, {"pass": 1, "axis": "pca"}, max_length)
+    qualities = [_pass_quality(1, centerline, records, tree)]
+    history: list[tuple[Centerline, list[SliceRecord], Centerline | None]] = [
+        (centerline, records, None)
+    ]
+    shifts: list[float] = []
+    settled = True  # False once a pass is rejected or the curve stops converging
     for it in range(c.max_iterations):
+        if not qualities[-1].possible:
+            break
+        width = _section_size(records)[0]
+        # trust radius: a curve inside the tunnel is within half a width of its centre; once
+        # the passes converge, a centre may move only a few times the last shift
+        trust = 0.5 * width
+        if shifts:
+            trust = min(trust, max(3.0 * shifts[-1], 10.0 * c.converge_tol))
         local = _axis_coordinates(pts, centerline, frame, roll)
         new_records = _slice_pass(local, sl, c, progress, f"centreline pass {it + 2}", leans)
+        _reject_centre_jumps(new_records, trust)
         _centres(new_records, lambda loc, a=centerline: _local_to_world(loc, a, frame, roll))
         try:
-            new = _fit(new_records, c, {"pass": it + 2, "axis": "curve"})
-        except NotATunnelError:
-            logger.warning("re-slicing along the curve failed; keeping pass %d", passes)
+            new = _fit(new_records, c, {"pass": it + 2, "axis": "curve"}, max_length)
+        except NotATunnelError as exc:
+            logger.warning("centreline pass %d failed (%s); keeping an earlier pass", it + 2, exc)
+            settled = False
             break
         shift = _shift(new, centerline)
+        q = _pass_quality(it + 2, new, new_records, tree, shift, trust)
+        qualities.append(q)
+        logger.info("centreline pass %d: curve moved by %.4f m (p95)", it + 2, shift)
+        if not q.possible:
+            logger.warning("centreline pass %d rejected: %s", it + 2, q.reason)
+            settled = False
+            break
+        best = min(x.score for x in qualities[:-1] if x.possible)
+        if q.score > 1.5 * best + _CENTRE_NOISE:
+            logger.warning(
+                "centreline pass %d rejected: its centres fit worse (score %.4f m vs %.4f m)",
+                it + 2, q.score, best,
+            )
+            q.possible, q.reason = False, "centres fit worse than an earlier pass"
+            settled = False
+            break
         shifts.append(shift)
-        axis, records, centerline, passes = centerline, new_records, new, it + 2
-        logger.info("centreline pass %d: curve moved by %.4f m (p95)", passes, shift)
+        history.append((new, new_records, centerline))
+        centerline, records = new, new_records
         if shift < c.converge_tol:
             break
         if len(shifts) > 1 and shift > 0.7 * shifts[-2]:
             # no longer converging: the centres' own noise (rough walls) moves the curve
             logger.info("centreline: re-slicing stopped at the noise floor (%.3f m)", shift)
+            settled = False
             break
+    good = [q for q in qualities if q.possible]
+    if not good:
+        raise NotATunnelError(
+            f"no centreline pass is possible: {qualities[0].reason}; is the cloud one tunnel "
+            "(not a room, a plane or several drifts)? check units (metres)"
+        )
+    # every accepted pass fits its centres within 1.5 x the best score (+5 mm); when the
+    # passes settled the last one is kept (it is sliced normal to the curve), when one was
+    # rejected or the curve stopped converging, the best-scoring accepted pass is kept
+    chosen = good[-1] if settled else min(good, key=lambda q: (q.score, -q.number))
+    # accepted passes are 1..k in order (the first rejected one ends the loop)
+    centerline, records, axis = history[chosen.number - 1]
+    passes = chosen.number
     ok = [r for r in records if r.ok]
     if ok:
         s = centerline.project(np.array([r.centre for r in ok])).chainage
@@ -479,9 +752,13 @@ def extract_centerline(
     centerline.meta.update(
         {
             "passes": passes,
+            "passes_run": len(qualities),
             "shifts_m": shifts,
             "roll_deg": float(np.degrees(roll)),
             "wall_leans": list(leans),
+            "pass_quality": [q.to_dict() for q in qualities],
         }
     )
-    return CenterlineResult(centerline, records, frame, passes, axis, sl, c, roll, leans)
+    return CenterlineResult(
+        centerline, records, frame, passes, axis, sl, c, roll, leans, qualities
+    )

@@ -93,6 +93,12 @@ def write(
     else:
         header, targets = _fresh_header(xyz, fields, meta)
     _fit_offsets(header, xyz)
+    if meta.get("note"):
+        # a run whose quality checks failed says so in words (tunneldef.quality.UNVERIFIED)
+        note = str(meta["note"])
+        header.vlrs.append(laspy.VLR(user_id="tunneldef", record_id=1,
+                                     description=note.encode()[:32].decode(errors="ignore"),
+                                     record_data=note.encode()))
     las = laspy.LasData(header, laspy.ScaleAwarePointRecord.zeros(len(xyz), header=header))
     quantised = np.rint((xyz - header.offsets) / header.scales)
     for axis, dim in enumerate("XYZ"):

@@ -190,7 +190,9 @@ def write(
         [element],
         text=text,
         byte_order=byte_order,
-        comments=list(source.get("comments", [])),
+        # a run whose quality checks failed says so in words (tunneldef.quality.UNVERIFIED)
+        comments=list(source.get("comments", []))
+        + ([str(meta["note"])] if meta.get("note") else []),
         obj_info=list(source.get("obj_info", [])),
     )
     with open(path, "wb") as stream:

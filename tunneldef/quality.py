@@ -1,0 +1,238 @@
+"""Self-checks of every stage: a figure, a limit, a verdict.
+
+Each stage states its own quality (the centreline extraction its passes' figures, the
+registration an independent look at its fit, :mod:`tunneldef.registration.verify`, the
+deformation the share of shell beyond its level of detection); the functions here turn those
+figures into :class:`Check` rows against the limits of :class:`~tunneldef.config.QualityConfig`.
+:func:`tunneldef.pipeline.detect` collects them in a :class:`QualityReport`, stops on the first
+failure with a :class:`QualityError` (one line: what failed, by how much, what to try) unless
+the checks are not enforced, and then marks every output "unverified".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .config import QualityConfig
+from .errors import TunnelDefError
+
+__all__ = [
+    "Check",
+    "QualityReport",
+    "QualityError",
+    "UNVERIFIED",
+    "centerline_checks",
+    "registration_checks",
+    "deformation_checks",
+]
+
+#: The words every output of a run whose checks failed carries (summary, file headers).
+UNVERIFIED = "UNVERIFIED: quality checks failed, result written on request"
+
+
+class QualityError(TunnelDefError):
+    """A stage's result failed its self-check; the result is not trustworthy."""
+
+
+@dataclass(frozen=True)
+class Check:
+    """One self-check.
+
+    Attributes
+    ----------
+    name : str
+        What is checked, e.g. ``"registration.axial_agreement"``.
+    figure : float
+        The measured value.
+    limit : float
+        The limit it is held to.
+    comparison : {"<=", ">="}
+        ``figure <= limit`` or ``figure >= limit`` passes.
+    unit : str
+        Unit of figure and limit ("m", "" for ratios and shares).
+    passed : bool
+        The verdict (NaN figures pass: nothing to judge, said in ``note``).
+    advice : str
+        What the user can do when it fails.
+    note : str
+        How the figure was made.
+    """
+
+    name: str
+    figure: float
+    limit: float
+    comparison: str
+    unit: str
+    passed: bool
+    advice: str = ""
+    note: str = ""
+
+    def reason(self) -> str:
+        """One line: the failed check, its figure against its limit, and the advice."""
+        op = ">" if self.comparison == "<=" else "<"
+        u = f" {self.unit}" if self.unit else ""
+        text = f"{self.name} {self.figure:.4g}{u} {op} limit {self.limit:.4g}{u}"
+        return f"{text}: {self.advice}" if self.advice else text
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form."""
+
+        def num(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {
+            "check": self.name,
+            "figure": num(self.figure),
+            "limit": num(self.limit),
+            "comparison": self.comparison,
+            "unit": self.unit,
+            "verdict": "pass" if self.passed else "fail",
+            "note": self.note,
+        }
+
+
+def _check(
+    name: str, figure: float, limit: float, comparison: str, unit: str, advice: str, note: str
+) -> Check:
+    f = float(figure)
+    if np.isnan(f):
+        ok = True
+    elif comparison == "<=":
+        ok = f <= limit
+    else:
+        ok = f >= limit
+    return Check(name, f, float(limit), comparison, unit, bool(ok), advice, note)
+
+
+@dataclass
+class QualityReport:
+    """All checks of one run.
+
+    Attributes
+    ----------
+    checks : list of Check
+    enforced : bool
+        True when a failed check stops the run (``[quality] enforce``, no ``--force``).
+    """
+
+    checks: list[Check] = field(default_factory=list)
+    enforced: bool = True
+
+    @property
+    def failed(self) -> list[Check]:
+        return [c for c in self.checks if not c.passed]
+
+    @property
+    def verified(self) -> bool:
+        """True when every check passed."""
+        return not self.failed
+
+    def add(self, checks: list[Check]) -> None:
+        """Record checks and, when enforced, stop at the first failure.
+
+        Raises
+        ------
+        QualityError
+            One line naming the failed check, its figure and limit, and what to try.
+        """
+        self.checks.extend(checks)
+        bad = [c for c in checks if not c.passed]
+        if bad and self.enforced:
+            raise QualityError(
+                f"quality check failed: {bad[0].reason()} (--force or [quality] enforce = "
+                "false writes the result anyway, marked unverified)"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The summary's ``quality`` block."""
+        return {
+            "verified": self.verified,
+            "enforced": self.enforced,
+            "status": "verified" if self.verified else UNVERIFIED,
+            "failed": [c.name for c in self.failed],
+            "checks": [c.to_dict() for c in self.checks],
+        }
+
+
+def centerline_checks(extraction: Any, qc: QualityConfig, epoch: str) -> list[Check]:
+    """Checks of one epoch's centreline (a
+    :class:`~tunneldef.centerline.extract.CenterlineResult`): share of usable slices, centre
+    residuals, curve-to-cloud distance, length against the cloud's extent."""
+    q = extraction.quality_of_curve
+    if q is None:
+        return []
+    name = f"{epoch}_centreline"
+    advice = (
+        f"the {epoch} centreline is unreliable; check that the cloud is one tunnel in metres "
+        "and try [slicing] thickness/step"
+    )
+    return [
+        _check(f"{name}.usable_slices", q.usable_share, qc.min_usable_share, ">=", "", advice,
+               f"share of slices with floor, roof and two walls (pass {q.number})"),
+        _check(f"{name}.curve_uncertainty", q.curve_uncertainty, qc.max_curve_uncertainty, "<=",
+               "m", advice, f"centre residuals p50 {q.residual_p50:.4f} m, p95 "
+               f"{q.residual_p95:.4f} m over {q.used} centres"),
+        _check(f"{name}.centre_residual_p95", q.residual_p95, qc.max_centre_residual, "<=", "m",
+               advice, "95th percentile distance of the used slice centres from the curve "
+               "(centres the curve does not follow: a gap bridged, a section misread)"),
+        _check(f"{name}.cloud_distance", q.cloud_distance, q.cloud_distance_limit, "<=", "m",
+               advice, "largest distance of a curve sample from the cloud; limit half the "
+               "section diagonal + 0.5 m"),
+        _check(f"{name}.length_vs_extent", q.length - q.extent, 1.0, "<=", "m", advice,
+               "curve length minus the cloud's extent along it"),
+    ]
+
+
+def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
+    """Checks of the registration from its independent figures (a
+    :class:`~tunneldef.registration.verify.RegistrationCheck`)."""
+    return [
+        _check("registration.fit_excess", check.excess, qc.max_fit_excess, "<=", "m",
+               "the compared epoch does not lie on the reference as closely as the scans' "
+               "noise allows (tilt or offset); check that both epochs show the same tunnel",
+               f"cross-epoch point-to-plane sigma {check.cross_residual:.4f} m vs the epochs' "
+               f"own {check.ref_residual:.4f} / {check.cmp_residual:.4f} m"),
+        _check("registration.centreline_difference", check.centreline_difference,
+               qc.max_centreline_difference, "<=", "m",
+               "the two epochs' centrelines do not agree after registration (sparse or noisy "
+               "sections, or a wrong registration); denser scans or a larger [slicing] "
+               "thickness may help", "p95 distance between the registered centrelines / sqrt(2)"),
+        _check("registration.axial_pose", check.pose_mismatch, qc.max_pose_mismatch, "<=",
+               "noise", "the section images match better at another position along the tunnel "
+               "than at the registered one; the registration may have slid",
+               f"section mismatch at the registered position vs the best shift, in units of "
+               f"its noise (best shift {check.coarse_shift:+.2f} m, equally good within "
+               f"{check.coarse_spread:.2f} m)"),
+        _check("registration.axial_scales", check.scale_disagreement,
+               qc.max_axial_disagreement, "<=", "sigma",
+               "the surfaces that fix the position along the tunnel give different answers at "
+               "0.15 m and 0.3 m scale (relief drowned in noise); the position is not "
+               "verified", f"point-to-plane slide {check.fine_shift:+.4f} m (normals over "
+               f"0.15 m) vs {check.wide_shift:+.4f} m (0.3 m)"),
+        _check("registration.axial_agreement", check.axial_disagreement,
+               qc.max_axial_disagreement, "<=", "sigma",
+               "section correlation and point-to-plane fit disagree on the position along the "
+               "tunnel; the registration may have slid",
+               f"section correlation {check.coarse_shift:+.3f} m, point-to-plane "
+               f"{check.fine_shift:+.4f} +- {check.fine_sigma:.4f} m"),
+    ]
+
+
+def deformation_checks(deformation: Any, qc: QualityConfig) -> list[Check]:
+    """Share of shell points beyond their LoD95 (robust estimator only; a correct registration
+    leaves about 5 % by chance plus the truly deformed shell)."""
+    sig = getattr(deformation, "significant", None)
+    if sig is None:
+        return []
+    shell = np.asarray(deformation.shell, dtype=bool)
+    lod = np.asarray(deformation.lod95, dtype=np.float64)
+    use = shell & np.isfinite(lod)
+    share = float(np.mean(np.asarray(sig, dtype=bool)[use])) if use.any() else np.nan
+    return [
+        _check("deformation.significant_share", share, qc.max_significant_share, "<=", "",
+               "far more of the shell changed than deformation explains: the registration "
+               "is probably wrong", "share of shell points whose |deformation| exceeds LoD95"),
+    ]

@@ -1,0 +1,255 @@
+"""An independent look at a finished registration: does it fit as well as the scans allow, and
+do two different measures of the position along the axis agree?
+
+Neither figure is produced by the registration itself, so neither can be talked into agreeing
+with it:
+
+* **fit against the scans' own noise.** The compared points' robust point-to-plane distance to
+  the reference surface is set against the same distance measured within each epoch (one half
+  of its points against the planes of the other half). A correct registration leaves the
+  cross-epoch figure at the level of the noisier epoch; a tilt or a lateral offset adds to it.
+  Deformation touches a minority of the shell and the robust scale (1.4826 MAD) ignores it.
+* **the along-axis position twice.** From the final pose, the section-correlation
+  (:func:`.axial.coarse_shift`, to a 0.25 m bin, with the spread of equally good matches) and
+  the point-to-plane slide (:func:`.axial.fine_shift`, with its standard deviation) must both
+  find no further shift, and agree with each other within their uncertainties. A slide along a
+  featureless prism passes the first test and fails this one (or shows as undetermined).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..curve import Centerline
+from ..spatial import random_subset
+from ..transforms import apply_transform
+from .axial import _mismatch, coarse_shift, section_image
+from .views import axial_correction, normals
+
+__all__ = ["RegistrationCheck", "verify_registration"]
+
+_SAMPLE = 25_000  # points per epoch and half the checks use
+_IMAGE_SAMPLE = 200_000  # points per epoch of the section images (the registration's least)
+_REACH = 0.1  # m: correspondences farther apart are not the same surface
+_NORMAL_RADIUS = 0.15  # m, as the registration's normals
+
+
+@dataclass(frozen=True)
+class RegistrationCheck:
+    """Independent figures of a registration (metres).
+
+    Attributes
+    ----------
+    cross_residual : float
+        Robust sigma (1.4826 MAD) of the compared points' distance to the reference planes.
+    ref_residual, cmp_residual : float
+        The same within each epoch (half of its points against the planes of the other half):
+        what the scans themselves show.
+    residual_ratio : float
+        ``cross_residual / max(ref_residual, cmp_residual)``; about 1 when registered.
+    excess : float
+        ``sqrt(max(cross^2 - max(ref, cmp)^2, 0))``: the misfit the scans' noise does not
+        explain (registration error, plus deformation the robust scale did not ignore).
+    coarse_shift, coarse_spread : float
+        Remaining along-axis shift by section correlation (0.25 m bins) and the spread of
+        equally good matches (large: the overlap has no feature along the axis).
+    fine_shift, fine_sigma : float
+        Remaining along-axis shift by point-to-plane sliding, and its standard deviation.
+    centreline_difference : float
+        95th percentile distance between the registered compared centreline and the reference
+        one over the common stretch (1 m inside its ends), divided by sqrt(2): about the p95
+        error of either curve when both are equally good, plus what the registration leaves;
+        NaN without a compared centreline.
+    pose_mismatch : float
+        How much worse the section images match at the registered position than at the best
+        shift within the search, in units of the mismatch's own noise (``(score(0) / best -
+        1) / (3 sqrt(2 / n))``, the tolerance of :func:`.axial.coarse_shift`): <= 1 when the
+        registered position is among the equally good ones. Unlike ``coarse_shift`` it stays
+        meaningful on a stretch with several equally good matches.
+    wide_shift, scale_disagreement : float
+        The point-to-plane slide again with normals over 0.3 m instead of 0.15 m, and
+        ``|fine_shift - wide_shift|`` in units of their combined sigma: <= 3 when the surfaces
+        that fix the position are real at both scales (NaN if either found nothing).
+    axial_disagreement : float
+        ``|coarse_shift - fine_shift|`` expressed in units of their combined uncertainty
+        (half a bin and ``fine_sigma`` added in quadrature); <= 3 when they agree; NaN when
+        the point-to-plane slide found nothing to hold on to or the section correlation has
+        equally good matches more than 1 m apart (then ``pose_mismatch`` judges).
+    """
+
+    cross_residual: float
+    ref_residual: float
+    cmp_residual: float
+    residual_ratio: float
+    excess: float
+    coarse_shift: float
+    coarse_spread: float
+    fine_shift: float
+    fine_sigma: float
+    axial_disagreement: float
+    centreline_difference: float = np.nan
+    pose_mismatch: float = np.nan
+    wide_shift: float = np.nan
+    scale_disagreement: float = np.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form (non-finite values become None)."""
+        return {k: (float(v) if np.isfinite(v) else None) for k, v in self.__dict__.items()}
+
+
+def _plane_sigma(src: np.ndarray, dst: np.ndarray, dst_n: np.ndarray, tree: cKDTree) -> float:
+    d, j = tree.query(src, distance_upper_bound=_REACH, workers=-1)
+    ok = np.isfinite(d)
+    if ok.sum() < 100:
+        return np.inf
+    r = np.einsum("ij,ij->i", src[ok] - dst[j[ok]], dst_n[j[ok]])
+    return float(1.4826 * np.median(np.abs(r - np.median(r))))
+
+
+def verify_registration(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    ref_centerline: Centerline,
+    *,
+    transform: np.ndarray | None = None,
+    cmp_centerline: Centerline | None = None,
+    search: float = 10.0,
+) -> RegistrationCheck:
+    """Independent figures of a registration (see the module notes).
+
+    Parameters
+    ----------
+    ref_xyz : ndarray, shape (N, 3)
+        Reference points, metres.
+    cmp_xyz : ndarray, shape (M, 3)
+        Compared points, metres: registered already, or in their own frame with
+        ``transform``.
+    ref_centerline : Centerline
+        The reference centreline (reference frame).
+    transform : ndarray, shape (4, 4), optional
+        Compared -> reference transform (applied to a subsample only).
+    cmp_centerline : Centerline, optional
+        The compared epoch's centreline in its own frame (``transform`` is applied).
+    search : float
+        Largest along-axis shift the section correlation looks for, metres (at most a quarter
+        of the common stretch is searched, at least 2 m).
+
+    Returns
+    -------
+    RegistrationCheck
+    """
+    origin = np.asarray(ref_xyz[0], dtype=np.float64)
+    # the section images want many points (as many as the registration used), the plane fits
+    # far fewer: a large random subset for the first, its head for the second
+    ref_big = random_subset(np.asarray(ref_xyz) - origin, _IMAGE_SAMPLE, 11)
+    cmp_big = random_subset(np.asarray(cmp_xyz), _IMAGE_SAMPLE, 12)
+    if transform is not None:
+        cmp_big = apply_transform(np.asarray(transform, dtype=np.float64), cmp_big)
+    cmp_big = cmp_big - origin
+    cl = ref_centerline.transformed(_shift_matrix(-origin))
+    # only the stretch both epochs cover, 0.5 m inside the reference's ends
+    mp = cl.project(cmp_big)
+    inside = (mp.chainage > 0.5) & (mp.chainage < cl.length - 0.5)
+    ref = ref_big[: 2 * _SAMPLE]
+    cmp = cmp_big[inside][: 2 * _SAMPLE]
+    ref_a, ref_b = ref[0::2], ref[1::2]
+    cmp_a, cmp_b = cmp[0::2], cmp[1::2]
+    ref_bn = normals(ref_b, _NORMAL_RADIUS)
+    ref_tree = cKDTree(ref_b)
+    cross = _plane_sigma(cmp_a, ref_b, ref_bn, ref_tree)
+    own_ref = _plane_sigma(ref_a, ref_b, ref_bn, ref_tree)
+    own_cmp = (
+        _plane_sigma(cmp_a, cmp_b, normals(cmp_b, _NORMAL_RADIUS), cKDTree(cmp_b))
+        if len(cmp_b) >= 100
+        else np.inf
+    )
+    own = max(own_ref, own_cmp)
+    ratio = cross / own if own > 0 and np.isfinite(own) else np.inf
+    excess = float(np.sqrt(max(cross**2 - own**2, 0.0))) if np.isfinite(ratio) else np.inf
+
+    rp = cl.project(ref_big)
+    # a quarter of the common stretch at most: beyond it a short overlap matches partial
+    # overlaps of itself as well as the true one
+    common = float(np.percentile(mp.chainage, 99) - np.percentile(mp.chainage, 1))
+    reach = float(np.clip(0.25 * common, 2.0, search))
+    ref_proj = (rp.chainage, rp.lateral, rp.vertical)
+    cmp_proj = (mp.chainage, mp.lateral, mp.vertical)
+    c_shift, c_spread = coarse_shift(ref_proj, cmp_proj, cl, search=reach)
+    pose_ratio = _pose_ratio(ref_proj, cmp_proj, cl, reach)
+    _, fine = axial_correction(ref, normals(ref, _NORMAL_RADIUS), cmp, cl)
+    # the same slide with normals over twice the radius: a real surface across the axis gives
+    # the same answer at both scales, relief drowned in noise does not (a 2.8 m drift with
+    # 1.9 cm relief under 2.9 cm noise: 0 vs 8.7 cm, where the registration was 7.5 cm off)
+    _, wide = axial_correction(ref, normals(ref, 2 * _NORMAL_RADIUS), cmp, cl)
+    scales = (
+        abs(fine.shift - wide.shift) / float(np.hypot(fine.uncertainty, wide.uncertainty))
+        if fine.informative and wide.informative
+        else np.nan
+    )
+    combined = float(np.hypot(0.125, fine.uncertainty))
+    # without a point-to-plane solution (no surface across the axis) there is nothing to
+    # compare: NaN, and the spread of the section correlation decides alone
+    disagreement = (
+        abs(c_shift - fine.shift) / combined
+        if fine.informative and c_spread <= _DETERMINED
+        else np.nan
+    )
+    difference = np.nan
+    if cmp_centerline is not None:
+        cc = cmp_centerline if transform is None else cmp_centerline.transformed(transform)
+        pc = ref_centerline.project(cc.points)
+        keep = (pc.chainage > 1.0) & (pc.chainage < ref_centerline.length - 1.0)
+        if keep.sum() >= 10:
+            difference = float(np.percentile(pc.distance[keep], 95)) / np.sqrt(2.0)
+    return RegistrationCheck(
+        cross_residual=cross,
+        ref_residual=own_ref,
+        cmp_residual=own_cmp,
+        residual_ratio=float(ratio),
+        excess=excess,
+        coarse_shift=float(c_shift),
+        coarse_spread=float(c_spread),
+        fine_shift=float(fine.shift),
+        fine_sigma=float(fine.uncertainty),
+        axial_disagreement=float(disagreement),
+        centreline_difference=difference,
+        pose_mismatch=pose_ratio,
+        wide_shift=float(wide.shift),
+        scale_disagreement=float(scales),
+    )
+
+
+_DETERMINED = 1.0  # m: a coarse spread up to this is one basin (the registration's rule)
+
+
+def _pose_ratio(
+    ref_proj: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cmp_proj: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cl: Centerline,
+    search: float,
+    step: float = 0.25,
+) -> float:
+    nb = int(np.ceil((cl.length + 2 * search) / step))
+    ref_img, _ = section_image(*ref_proj, start=-search, step=step, n_bins=nb)
+    cmp_img, _ = section_image(*cmp_proj, start=-search, step=step, n_bins=nb)
+    n_cmp = int(np.isfinite(cmp_img).sum())
+    kmax = int(np.ceil(search / step))
+    shifts = np.arange(-kmax, kmax + 1)
+    scores, _, _ = _mismatch(ref_img, cmp_img, shifts, clip=0.3,
+                             min_cells=max(int(0.3 * n_cmp), 10))
+    best = float(np.min(scores))
+    at_zero = float(scores[kmax])
+    if not (np.isfinite(best) and np.isfinite(at_zero)) or best <= 0:
+        return np.nan
+    noise = 3.0 * np.sqrt(2.0 / max(n_cmp // 4, 1))
+    return (at_zero / best - 1.0) / noise
+
+
+def _shift_matrix(t: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = t
+    return m
