@@ -159,7 +159,7 @@ def open_engine(
         from distributed import Client
 
         try:
-            client = Client(scheduler, timeout="20s", set_as_default=False)
+            client = Client(scheduler, timeout="20s")
         except (OSError, TimeoutError) as exc:
             raise EngineError(f"cannot reach the Dask scheduler at {scheduler}: "
                               f"{_one_line(exc)}") from exc
@@ -173,7 +173,7 @@ def open_engine(
 
         cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
                                host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
-        client = Client(cluster, set_as_default=False)
+        client = Client(cluster)
         logger.info("Dask LocalCluster: %d worker processes", int(workers))
         return Engine(client, cluster=cluster)
     return Engine(None, threads or os.cpu_count() or 1)
