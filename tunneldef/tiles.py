@@ -47,7 +47,7 @@ from .deformation.result import DeformationResult
 from .deformation.sections import surface_labels
 from .engine import Engine
 from .errors import ConfigError
-from .progress import ProgressCallback, notify
+from .progress import ProgressCallback, notify, under
 
 __all__ = ["tile_margin", "tile_length_for", "tiled_deformation", "project_chunked",
            "BYTES_PER_POINT"]
@@ -284,6 +284,13 @@ def tiled_deformation(
     if not tile_length > 0:
         raise ConfigError(f"tile length must be > 0 m, got {tile_length!r}")
     edges = _edges(coverage[0], coverage[1], tile_length)
+    if len(edges) == 2:  # one tile holds both clouds whole: nothing to cut, nothing to pass on
+        from .deformation.compute import compute_deformation
+
+        notify(progress, "tiles", 1.0)
+        logger.info("one tile: the survey fits %.1f m", tile_length)
+        return compute_deformation(ref_xyz, cmp_xyz, centerline, settings=settings,
+                                   coverage=coverage, progress=under(progress, "deformation"))
     base = Path(workdir) if workdir is not None else None
     tmp = Path(tempfile.mkdtemp(prefix="tunneldef-tiles-", dir=base))
     try:
