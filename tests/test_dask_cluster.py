@@ -155,3 +155,12 @@ def test_killed_worker_retried_or_one_line_error(cluster, pair, local_result, tm
         assert len(errors) == 1 and text.strip().endswith(errors[0]), text
         assert "Traceback" not in text, text
         assert not out.exists(), "the output is never half written"
+
+
+def test_unreachable_scheduler_is_a_one_line_error(pair, tmp_path, capsys) -> None:
+    out = tmp_path / "out.laz"
+    code = main(["detect", str(pair[0]), str(pair[1]), "-o", str(out), "--scheduler",
+                 f"tcp://127.0.0.1:{_free_port()}", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("tunneldef: error: cannot reach the Dask scheduler")
+    assert not out.exists()

@@ -159,7 +159,7 @@ def open_engine(
         from distributed import Client
 
         try:
-            client = Client(scheduler, timeout="20s")
+            client = Client(scheduler, timeout="10s")
         except (OSError, TimeoutError) as exc:
             raise EngineError(f"cannot reach the Dask scheduler at {scheduler}: "
                               f"{_one_line(exc)}") from exc
