@@ -1,6 +1,6 @@
 """Whole-process time and peak memory of `tunneldef detect` against CloudCompare's C2C.
 
-Usage: python benchmarks/scale.py [--rows 60,350,1000] [--keep DIR] [-- detect options]
+Usage: python benchmarks/scale.py [--rows 60,350,1000] [--keep DIR [--reuse]] [-- detect options]
 
 Each row: a synthetic pair (``tunneldef.synth``: chamber, equipment, conveyor, rough rock, a
 30 mm roof sag; the compared epoch moved by a rigid motion) of the given length at the
@@ -78,8 +78,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rows", default="60,350", help="lengths to run, m (60, 350, 1000)")
     ap.add_argument("--keep", help="keep the pairs and outputs in this folder")
+    ap.add_argument("--reuse", action="store_true",
+                    help="reuse the pairs already in --keep")
     ap.add_argument("detect_args", nargs="*", help="extra options for tunneldef detect")
     args = ap.parse_args()
+    from tunneldef.io.stream import read_points
+
     cc = shutil.which("CloudCompare")
     lines = ["| points (ref + cmp) | length | format | detect wall s | detect peak RSS GB | "
              "C2C wall s | C2C peak RSS GB | detect / C2C time | load avg |",
@@ -92,8 +96,11 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         try:
             t = time.perf_counter()
-            n_ref, n_cmp = _pair(length, points, fmt, folder)
-            print(f"{length} m: pair written in {time.perf_counter() - t:.0f} s", file=sys.stderr)
+            if args.reuse and (folder / "c2c_cmp.ply").exists():
+                n_ref, n_cmp = (len(read_points(folder / f"{e}.{fmt}")[0]) for e in ("ref", "cmp"))
+            else:
+                n_ref, n_cmp = _pair(length, points, fmt, folder)
+            print(f"{length} m: pair ready in {time.perf_counter() - t:.0f} s", file=sys.stderr)
             load = os.getloadavg()[0]
             cmd = [sys.executable, "-c", "import sys; from tunneldef.cli import main; "
                    "sys.exit(main())", "detect", str(folder / f"ref.{fmt}"),

@@ -257,9 +257,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
     log.info("reference %s: %s points; compared %s: %s points", ref_path.name, f"{len(ref):,}",
              cmp_path.name, f"{len(cmp):,}")
     progress = None if args.quiet else StageLogger(log)
-    with open_engine(scheduler=args.scheduler, workers=args.workers) as engine:
-        tiles = {"tile_length": args.tile_length, "memory_gb": args.memory, "engine": engine,
-                 "workdir": tile_dir}
+    with open_engine(scheduler=args.scheduler, workers=args.workers,
+                     memory_gb=args.memory) as engine:
+        tiles = {"tile_length": args.tile_length, "memory_gb": engine.tile_memory_gb,
+                 "engine": engine, "workdir": tile_dir}
         result = detect(ref, cmp, config, progress=progress, tiles=tiles)
     write_with_fields(out, cmp_path, result.cloud.xyz, result.cloud.fields, keep=keep,
                       strict=args.strict)
@@ -435,8 +436,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="registration method (default: centerline)")
     p.add_argument("--tile-length", type=_positive_float, metavar="M",
                    help="length of a chainage tile, m (default: from --memory)")
-    p.add_argument("--memory", type=_positive_float, default=1.0, metavar="GB",
-                   help="working memory of one tile, GB (default 1); chooses the tile length")
+    p.add_argument("--memory", type=_positive_float, default=1.5, metavar="GB",
+                   help="working memory of the tiles, GB (default 1.5): on this machine for "
+                   "the tiles at once, on a cluster per worker; chooses the tile length")
     p.add_argument("--workers", type=int, metavar="N",
                    help="start a local Dask cluster of N worker processes (default: Dask's "
                    "threaded scheduler, one tile per core)")

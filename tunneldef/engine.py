@@ -48,12 +48,18 @@ class Engine:
         Tasks at once on the local scheduler.
     cluster : object, optional
         The ``LocalCluster`` this engine started (closed by :meth:`close`).
+    tile_memory_gb : float
+        Working memory one task may take, GB.
     """
 
-    def __init__(self, client: Any = None, threads: int = 1, cluster: Any = None) -> None:
+    def __init__(
+        self, client: Any = None, threads: int = 1, cluster: Any = None,
+        tile_memory_gb: float = 1.0,
+    ) -> None:
         self.client = client
         self.threads = max(int(threads), 1)
         self._cluster = cluster
+        self.tile_memory_gb = float(tile_memory_gb)
 
     @property
     def distributed(self) -> bool:
@@ -134,8 +140,14 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if type(exc).__name__ not in text else text
 
 
+#: Working memory below which a tile is not worth running beside another one, GB (smaller
+#: tiles spend more of their points on margins).
+MIN_TILE_MEMORY_GB = 1.5
+
+
 def open_engine(
-    *, scheduler: str | None = None, workers: int | None = None, threads: int | None = None
+    *, scheduler: str | None = None, workers: int | None = None, threads: int | None = None,
+    memory_gb: float = 1.5,
 ) -> Engine:
     """The engine for a run.
 
@@ -146,7 +158,11 @@ def open_engine(
     workers : int, optional
         Start a ``LocalCluster`` of this many single-threaded worker processes on 127.0.0.1.
     threads : int, optional
-        Tasks at once on the local threaded scheduler (default: the machine's cores).
+        Tasks at once on the local threaded scheduler (default: the machine's cores, as many
+        as ``memory_gb`` holds at ``MIN_TILE_MEMORY_GB`` each).
+    memory_gb : float
+        Working memory of the tasks, GB: on the local scheduler for all running at once
+        (each gets its share), on a cluster for each worker's task.
 
     Raises
     ------
@@ -165,7 +181,7 @@ def open_engine(
                               f"{_one_line(exc)}") from exc
         logger.info("Dask cluster %s: %d workers; dashboard %s", scheduler,
                     len(client.scheduler_info().get("workers", {})), client.dashboard_link)
-        return Engine(client)
+        return Engine(client, tile_memory_gb=memory_gb)
     if workers:
         if int(workers) < 1:
             raise EngineError(f"--workers must be at least 1, got {workers}")
@@ -175,5 +191,7 @@ def open_engine(
                                host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
         client = Client(cluster)
         logger.info("Dask LocalCluster: %d worker processes", int(workers))
-        return Engine(client, cluster=cluster)
-    return Engine(None, threads or os.cpu_count() or 1)
+        return Engine(client, cluster=cluster, tile_memory_gb=memory_gb)
+    if threads is None:
+        threads = min(os.cpu_count() or 1, max(1, int(memory_gb / MIN_TILE_MEMORY_GB)))
+    return Engine(None, threads, tile_memory_gb=memory_gb / threads)
