@@ -276,7 +276,9 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
-    from .io import read, write
+    from .cloud import Cloud
+    from .engine import open_engine
+    from .io.stream import read_points, write_with_fields
     from .pipeline import detect
 
     ref_path, cmp_path = _existing_file(args.reference), _existing_file(args.compared)
@@ -287,7 +289,12 @@ def cmd_detect(args: argparse.Namespace) -> int:
     for p in [out, *extra]:
         _check_output(p, [ref_path, cmp_path])
     config = _apply_overrides(_load_config(args), args)
-    ref, cmp = read(ref_path, strict=args.strict), read(cmp_path, strict=args.strict)
+    tile_dir = Path(args.tile_dir) if args.tile_dir else out.parent
+    if not tile_dir.is_dir():
+        raise TunnelDefError(f"tile folder does not exist: {tile_dir}; create it first")
+    ref = Cloud(read_points(ref_path, strict=args.strict)[0])
+    cmp_xyz, keep = read_points(cmp_path, strict=args.strict)
+    cmp = Cloud(cmp_xyz)
     log.info("reference %s: %s points; compared %s: %s points", ref_path.name, f"{len(ref):,}",
              cmp_path.name, f"{len(cmp):,}")
     progress = None if args.quiet else StageLogger(log)
@@ -298,8 +305,13 @@ def cmd_detect(args: argparse.Namespace) -> int:
             config = config.replace(network={"drift_correction": False})
         result = detect_network(ref, cmp, config, progress=progress)
     else:
-        result = detect(ref, cmp, config, progress=progress)
-    write(out, result.cloud)
+        with open_engine(scheduler=args.scheduler, workers=args.workers,
+                         memory_gb=args.memory) as engine:
+            tiles = {"tile_length": args.tile_length, "memory_gb": engine.tile_memory_gb,
+                     "engine": engine, "workdir": tile_dir}
+            result = detect(ref, cmp, config, progress=progress, tiles=tiles)
+    write_with_fields(out, cmp_path, result.cloud.xyz, result.cloud.fields, keep=keep,
+                      strict=args.strict, note=result.cloud.meta.get("note"))
     summary = result.summary()
     summary["inputs"] = {"reference": str(ref_path), "compared": str(cmp_path), "output": str(out)}
     if args.summary:
@@ -311,6 +323,16 @@ def cmd_detect(args: argparse.Namespace) -> int:
     _log_result(summary)
     log.info("wrote %s", ", ".join(str(p) for p in [out, *extra]))
     return 0
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
 
 
 def _apply_overrides(config: Any, args: argparse.Namespace) -> Any:
@@ -474,6 +496,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="write the result even if a quality check fails; the outputs (summary, "
                    "LAS/PLY header) are then marked UNVERIFIED")
+    p.add_argument("--tile-length", type=_positive_float, metavar="M",
+                   help="length of a chainage tile, m (default: from --memory)")
+    p.add_argument("--memory", type=_positive_float, default=1.5, metavar="GB",
+                   help="working memory of the tiles, GB (default 1.5): on this machine for "
+                   "the tiles at once, on a cluster per worker; chooses the tile length")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="start a local Dask cluster of N worker processes (default: Dask's "
+                   "threaded scheduler, one tile per core)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the tiles on an existing Dask cluster (tcp://host:port); its "
+                   "workers must see --tile-dir")
+    p.add_argument("--tile-dir", metavar="DIR",
+                   help="folder for the tiles' temporary files, visible to every worker "
+                   "(default: the output's folder)")
     p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("demo", parents=[common],

@@ -209,6 +209,7 @@ class Result:
 def detect(
     ref: Cloud, cmp: Cloud, config: Config | None = None, *,
     progress: ProgressCallback | None = None,
+    tiles: dict[str, Any] | None = None,
 ) -> Result:
     """Register the compared epoch onto the reference and measure deformation.
 
@@ -220,6 +221,10 @@ def detect(
         Parameters (defaults: the paper's where it gives them).
     progress : callable, optional
         ``progress(stage, fraction)``; may raise :class:`tunneldef.progress.Cancelled`.
+    tiles : dict, optional
+        Run the deformation stage in chainage tiles as Dask tasks: keyword arguments of
+        :func:`tunneldef.tiles.tiled_deformation` (``tile_length``, ``memory_gb``, ``engine``,
+        ``workdir``); the values are those of the untiled stage.
 
     Returns
     -------
@@ -259,8 +264,14 @@ def detect(
     transform = np.asarray(reg.transform, dtype=np.float64)
     moved = cmp.transformed(transform)
     ref_cl = reg_all.ref_extraction.centerline
-    projection = ref_cl.project(moved.xyz)
-    overlap = float(np.mean(projection.inside))
+    if tiles is None:
+        projection = ref_cl.project(moved.xyz)
+        inside = projection.inside
+    else:
+        from .tiles import project_chunked
+
+        chainage, lateral, vertical, inside = project_chunked(ref_cl, moved.xyz, full=True)
+    overlap = float(np.mean(inside))
     if overlap < _MIN_OVERLAP:
         raise EpochMismatchError(
             f"only {100 * overlap:.0f} % of the compared points lie along the reference "
@@ -270,9 +281,16 @@ def detect(
     # does not explain (tunneldef.registration.verify)
     check = reg_all.registration_check
     reg_sigma = float(check.excess) if check is not None and np.isfinite(check.excess) else 0.0
-    d = compute_deformation(ref.xyz, moved.xyz, ref_cl, settings=config.deformation,
-                            projection=projection, registration_sigma=reg_sigma,
-                            progress=under(progress, "deformation"))
+    if tiles is None:
+        d = compute_deformation(ref.xyz, moved.xyz, ref_cl, settings=config.deformation,
+                                projection=projection, registration_sigma=reg_sigma,
+                                progress=under(progress, "deformation"))
+    else:
+        from .tiles import tiled_deformation
+
+        d = tiled_deformation(ref.xyz, moved.xyz, ref_cl, settings=config.deformation,
+                              projection=(chainage, lateral, vertical),
+                              registration_sigma=reg_sigma, progress=progress, **tiles)
     reg_all.quality.add(deformation_checks(d, config.quality))
     if not reg_all.quality.verified:
         log.warning("%s: %s", UNVERIFIED, "; ".join(c.reason() for c in reg_all.quality.failed))

@@ -23,7 +23,7 @@ from .knn import counterpart_projection, knn_counterparts, manhattan_split
 from .result import DeformationResult
 from .sections import surface_labels
 
-__all__ = ["compute_deformation", "METHODS"]
+__all__ = ["compute_deformation", "common_masks", "global_inputs", "METHODS"]
 
 logger = logging.getLogger(__name__)
 
@@ -41,6 +41,48 @@ def _envelope(
 
 _COVERAGE_SAMPLE = 200_000
 _COVERAGE_QUANTILE = 0.0005
+
+
+def global_inputs(
+    ref: np.ndarray, cmp: np.ndarray, settings: DeformationConfig
+) -> dict[str, object]:
+    """The local-surface estimator's inputs that must come from the whole clouds.
+
+    The local origin (the reference's centroid), the corner of the core voxel grid (the compared
+    points' minimum corner) and the corner of the normals' voxel grid (below both clouds by the
+    normal radius and two core spacings). Data of both estimator passes
+    (:func:`compute_deformation`) and of every tile (:mod:`tunneldef.tiles`) lie inside them,
+    so each gets the same voxels.
+    """
+    origin = ref.mean(axis=0)
+    lo_cmp = (cmp - origin).min(axis=0)
+    lo = np.minimum((ref - origin).min(axis=0), lo_cmp)
+    corner = lo - (settings.normal_radius + 2.0 * settings.core_spacing)
+    return {"origin": origin, "core_anchor": lo_cmp, "normal_corner": corner}
+
+
+def common_masks(
+    ref_env: shell_module.ShellEnvelope,
+    ref_pp: Projection,
+    ref_off: np.ndarray,
+    ref_obl: np.ndarray,
+    cmp_env: shell_module.ShellEnvelope,
+    cmp_pp: Projection,
+    cmp_off: np.ndarray,
+    cmp_obl: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Shell masks of both epochs cut at one level: the inner of the two envelopes once their
+    local difference (the motion) is taken out (see :func:`compute_deformation`, Notes).
+
+    Returns the reference's and the compared epoch's masks, each shape (N,) of bool.
+    """
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        other_job = pool.submit(cmp_env.matched_offset, ref_pp, ref_off)
+        cmp_other = ref_env.matched_offset(cmp_pp, cmp_off)
+        ref_other = other_job.result()
+    ref_mask = shell_module.shell_mask(ref_off, ref_obl, other=ref_other)
+    cmp_mask = shell_module.shell_mask(cmp_off, cmp_obl, other=cmp_other)
+    return ref_mask, cmp_mask
 
 
 def _coverage(
@@ -200,6 +242,8 @@ def compute_deformation(
     registration_sigma: float = 0.0,
     workers: int = -1,
     progress: ProgressCallback | None = None,
+    coverage: tuple[float, float] | None = None,
+    robust_inputs: dict[str, object] | None = None,
 ) -> DeformationResult:
     """Signed per-point deformation of a registered compared epoch against the reference.
 
@@ -229,6 +273,15 @@ def compute_deformation(
         Threads for KD-tree queries (-1: all cores).
     progress : callable, optional
         ``progress(stage, fraction)``.
+    coverage : (float, float), optional
+        Chainage range covered by the reference (see Notes), when the caller measured it on
+        the whole reference: a piece of the clouds (:mod:`tunneldef.tiles`) must not take its
+        own.
+    robust_inputs : dict, optional
+        ``robust`` only: keyword arguments passed on to
+        :func:`tunneldef.deformation.local_surface.robust_deformation` (``origin``,
+        ``core_anchor``, ``normal_corner``, ``typical_spread``: the whole clouds' values for a
+        piece of them).
 
     Returns
     -------
@@ -316,13 +369,14 @@ def compute_deformation(
             else:
                 # both epochs' surfaces are measured on points cut at one level, from the inner
                 # of the two envelopes once their local difference (the motion) is taken out
-                with ThreadPoolExecutor(max_workers=1) as pool:
-                    other_job = pool.submit(cmp_env.matched_offset, ref_pp, ref_off)
-                    cmp_other = ref_env.matched_offset(pp, cmp_off)
-                    ref_other = other_job.result()
-                ref_mask = shell_module.shell_mask(ref_off, ref_obl, other=ref_other)
-                cmp_mask = shell_module.shell_mask(cmp_off, cmp_obl, other=cmp_other)
-            kwargs = _robust_kwargs(dcfg)
+                ref_mask, cmp_mask = common_masks(
+                    ref_env, ref_pp, ref_off, ref_obl, cmp_env, pp, cmp_off, cmp_obl
+                )
+            # the grids and typical spreads come from the whole clouds (or, for a tile, from
+            # the whole survey's: robust_inputs), the same for both passes below, so that a
+            # tile's values are the untiled ones
+            grids = dict(robust_inputs) if robust_inputs else global_inputs(ref, cmp, dcfg)
+            kwargs = {**_robust_kwargs(dcfg), **grids}
             r = robust_deformation(
                 ref,
                 cmp,
@@ -359,7 +413,7 @@ def compute_deformation(
                     registration_sigma=registration_sigma,
                     workers=workers,
                     progress=scaled(progress, 0.75, 0.85),
-                    **kwargs,
+                    **{**kwargs, "typical_spread": r.meta.get("typical_spread")},
                 )
                 standing = np.zeros(len(cmp), dtype=bool)
                 in_rest = rest[kc]
@@ -406,7 +460,10 @@ def compute_deformation(
                 lod95[clutter] = np.nan
             k = None
         # no counterpart beyond the reference's ends or farther than max_distance (holes)
-        lo, hi = _coverage(ref, centerline, workers, ref_chainage)
+        if coverage is None:
+            lo, hi = _coverage(ref, centerline, workers, ref_chainage)
+        else:
+            lo, hi = coverage
         unmatched = (pp.chainage < lo) | (pp.chainage > hi)
         if method == "knn":
             unmatched |= dist > dcfg.max_distance

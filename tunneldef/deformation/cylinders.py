@@ -24,7 +24,9 @@ _MAX_ANGLE_DEG = 35.0  # points of the same surface as a core: normals within th
 _COS_MAX_ANGLE = float(np.cos(np.radians(_MAX_ANGLE_DEG)))
 
 
-def voxel_cores(xyz: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+def voxel_cores(
+    xyz: np.ndarray, spacing: float, anchor: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Core points: centroids of the points in each occupied cubic voxel.
 
     Parameters
@@ -33,6 +35,10 @@ def voxel_cores(xyz: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray
         Coordinates, metres (a local origin keeps the voxel indices small).
     spacing : float
         Voxel edge, metres.
+    anchor : ndarray, shape (3,), optional
+        Corner of the voxel grid, metres (at most ``xyz.min(axis=0)``); the cloud's own minimum
+        corner by default. A piece of a cloud cut out of a larger one gets the larger cloud's
+        voxels when it is given that cloud's anchor.
 
     Returns
     -------
@@ -41,7 +47,8 @@ def voxel_cores(xyz: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray
     inverse : ndarray of intp, shape (N,)
         Core of each point.
     """
-    ijk = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
+    corner = xyz.min(axis=0) if anchor is None else np.asarray(anchor, dtype=np.float64)
+    ijk = np.floor((xyz - corner) / spacing).astype(np.int64)
     dims = ijk.max(axis=0) + 1
     key = (ijk[:, 2] * dims[1] + ijk[:, 1]) * dims[0] + ijk[:, 0]
     _, inverse = np.unique(key, return_inverse=True)
@@ -108,7 +115,8 @@ class _Epoch(_RadiusIndex):
 
 
 def _voxel_normals(
-    ref: np.ndarray, cores: np.ndarray, spacing: float, radius: float
+    ref: np.ndarray, cores: np.ndarray, spacing: float, radius: float,
+    lo: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Plane normal and surface variation of the reference around each core.
 
@@ -117,9 +125,11 @@ def _voxel_normals(
     voxel whose centre lies within ``radius + spacing / 2`` of it, and its covariance is the
     sum of those voxels' moments moved to the core. Returns the smallest-eigenvalue
     eigenvectors (C, 3) (unoriented) and ``l0 / (l0 + l1 + l2)`` (C,) (about 0 on a plane, up
-    to 1/3 on a corner; ``inf`` with fewer than 3 points).
+    to 1/3 on a corner; ``inf`` with fewer than 3 points). ``lo`` is the corner of the voxel
+    grid (default: :func:`normal_grid_corner` of these points).
     """
-    lo = np.minimum(ref.min(axis=0), cores.min(axis=0)) - (radius + 2.0 * spacing)
+    if lo is None:
+        lo = normal_grid_corner(ref, cores, spacing, radius)
     hi = np.maximum(ref.max(axis=0), cores.max(axis=0)) + (radius + 2.0 * spacing)
     dims = np.ceil((hi - lo) / spacing).astype(np.int64) + 1
     strides = np.array([1, dims[0], dims[0] * dims[1]], dtype=np.int64)
@@ -168,6 +178,13 @@ def _voxel_normals(
     variation = vals[:, 0] / np.maximum(vals.sum(axis=1), 1e-30)
     variation[few] = np.inf
     return normals, variation
+
+
+def normal_grid_corner(
+    ref: np.ndarray, cores: np.ndarray, spacing: float, radius: float
+) -> np.ndarray:
+    """Corner of the voxel grid :func:`_voxel_normals` sums the reference's moments on."""
+    return np.minimum(ref.min(axis=0), cores.min(axis=0)) - (radius + 2.0 * spacing)
 
 
 def _group_moments(group, values, keep, ngroups):

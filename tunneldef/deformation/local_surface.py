@@ -109,10 +109,11 @@ from .cylinders import (
     _epoch_stats,
     _voxel_normals,
     _voxel_order,
+    normal_grid_corner,
     voxel_cores,
 )
 
-__all__ = ["RobustDeformation", "robust_deformation", "voxel_cores"]
+__all__ = ["RobustDeformation", "robust_deformation", "voxel_cores", "normal_grid_corner"]
 
 logger = logging.getLogger(__name__)
 
@@ -221,6 +222,11 @@ def robust_deformation(
     measure: np.ndarray | None = None,
     workers: int = -1,
     progress: ProgressCallback | None = None,
+    origin: np.ndarray | None = None,
+    core_anchor: np.ndarray | None = None,
+    normal_corner: np.ndarray | None = None,
+    typical_spread: tuple[float, float] | None = None,
+    spreads_only: bool = False,
 ) -> RobustDeformation:
     """Signed deformation of every compared point with a per-point level of detection.
 
@@ -261,6 +267,17 @@ def robust_deformation(
         neighbourhoods come from Open3D's radius search, which uses every core.
     progress : callable, optional
         ``progress(stage, fraction)``.
+    origin, core_anchor, normal_corner, typical_spread : optional
+        The inputs that otherwise come from the whole clouds, for a piece of the clouds cut
+        out along the chainage (:mod:`tunneldef.tiles`) to get the whole clouds' values:
+        the local origin (default ``ref_xyz.mean(axis=0)``), the corner of the core voxel grid
+        relative to it (default: the compared points' minimum corner), the corner of the
+        normals' voxel grid (default :func:`normal_grid_corner`) and the typical cylinder
+        spreads of the reference and compared epochs (default: their medians over all cores).
+    spreads_only : bool
+        Stop after the cylinder statistics and return ``(cores, inverse, sigma_ref,
+        sigma_cmp)``: the core points (input frame), the core of each compared point and the
+        spreads whose medians are ``typical_spread``.
 
     Returns
     -------
@@ -293,7 +310,7 @@ def robust_deformation(
     if len(ref_use) < 3:
         raise InvalidCloudError("ref_mask keeps fewer than 3 reference points; pass a wider mask")
 
-    origin = ref.mean(axis=0)
+    origin = ref.mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
     shift = np.eye(4)
     shift[:3, 3] = -origin
     line = centerline.transformed(shift)
@@ -303,7 +320,7 @@ def robust_deformation(
         if not measure.any():
             return _nothing_measured(n_all, cmp_.shape[1])
     todo = cmp_ if measure is None else cmp_[measure]
-    cores, inverse = voxel_cores(todo - origin, core_spacing)
+    cores, inverse = voxel_cores(todo - origin, core_spacing, core_anchor)
     n_cores = len(cores)
     notify(progress, "robust deformation", 0.0)
     # spatially sorted copies make the neighbour gathers cache-friendly
@@ -315,7 +332,11 @@ def robust_deformation(
         cmp_core = (inverse if cmp_mask is None else inverse[cmp_mask])[order]
 
     # pass 1: outward plane normal of the reference around each core (voxel moments)
-    normal, variation = _voxel_normals(ref_use, cores, core_spacing, normal_radius)
+    if normal_corner is None:
+        normal_corner = normal_grid_corner(ref_use, cores, core_spacing, normal_radius)
+    normal, variation = _voxel_normals(
+        ref_use, cores, core_spacing, normal_radius, np.asarray(normal_corner, dtype=np.float64)
+    )
     radial = _outward(line, cores, workers)
     flat = ~np.isfinite(variation)
     normal[flat] = radial[flat]
@@ -362,6 +383,9 @@ def robust_deformation(
             out[key][sl] = s_
         notify(progress, "robust deformation", 0.2 + 0.5 * sl.stop / n_cores)
 
+    if spreads_only:
+        return cores + origin, inverse, out["sr"], out["sc"]
+
     # pass 3, adaptive scale: cores with too few points of an epoch (but some of each: a core
     # without any is off the surface, or its surface has no counterpart) or a cylinder much
     # rougher than is typical (objects close to the shell, shadowed shell) are measured again
@@ -370,9 +394,12 @@ def robust_deformation(
     weak &= (out["nr"] > 0) & (out["nc"] > 0)
     n_sparse = int(weak.sum())
     typicals = {}
-    for key in ("sr", "sc"):
-        typical = np.nanmedian(out[key]) if np.isfinite(out[key]).any() else np.inf
-        typicals[key] = typical
+    for i, key in enumerate(("sr", "sc")):
+        if typical_spread is not None:
+            typical = float(typical_spread[i])
+        else:
+            typical = np.nanmedian(out[key]) if np.isfinite(out[key]).any() else np.inf
+        typicals[key] = float(typical)
         with np.errstate(invalid="ignore"):
             rough = np.maximum(_ROUGH_FACTOR * typical, typical + _ROUGH_EXCESS)
             weak |= (out[key] > rough) & (variation <= _MAX_VARIATION)
@@ -533,6 +560,7 @@ def robust_deformation(
             "min_points": int(min_points),
             "registration_sigma": registration_sigma,
             "cores": n_cores,
+            "typical_spread": (typicals["sr"], typicals["sc"]),
             "wide_cylinder_cores": n_fallback,
             "sparse_cores": n_sparse,
             "deep_cylinder_cores": n_deep,

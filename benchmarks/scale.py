@@ -1,0 +1,133 @@
+"""Whole-process time and peak memory of `tunneldef detect` against CloudCompare's C2C.
+
+Usage: python benchmarks/scale.py [--rows 60,350,1000] [--keep DIR [--reuse]] [-- detect options]
+
+Each row: a synthetic pair (``tunneldef.synth``: chamber, equipment, conveyor, rough rock, a
+30 mm roof sag; the compared epoch moved by a rigid motion) of the given length at the
+handheld scanner's density, written in the row's format. ``tunneldef detect REF CMP -o OUT``
+runs as its own process; then CloudCompare 2.11's C2C (k = 1) runs on the same pair, aligned
+(the compared epoch in the reference frame, the synthetic truth), as binary PLY:
+``CloudCompare -SILENT -AUTO_SAVE OFF -O ref.ply -O cmp.ply -C2C_DIST``. Wall time and peak
+RSS are those of each whole process (``os.wait4``). Rows:
+
+* ``60``: 60 m, 1.15 M + 1.14 M points, PLY in and out;
+* ``350``: 350 m, 16 M + 16 M points, LAZ in and out;
+* ``1000``: 1 km, 55 M + 55 M points, LAZ in and out.
+
+Prints one Markdown table. Other work on the machine slows both programs; the load average
+at the start of each row is printed with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROWS = {  # length m -> (points per epoch without clutter, format)
+    60: (0.93e6, "ply"),
+    350: (13.2e6, "laz"),
+    1000: (45.4e6, "laz"),
+}
+PERIMETER = 2 * (5.8 + 2.86)
+
+
+def _run(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float, int, str]:
+    """Wall time (s), peak RSS (GB), exit code and the last lines of stderr of a process."""
+    t = time.perf_counter()
+    with tempfile.TemporaryFile() as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, env=env)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        err.seek(0)
+        tail = err.read().decode(errors="replace").strip().splitlines()[-3:]
+    return wall, usage.ru_maxrss / 1024**2, proc.returncode, " | ".join(tail)
+
+
+def _pair(length: float, points: float, fmt: str, folder: Path) -> tuple[int, int]:
+    from tunneldef import synth
+    from tunneldef.cloud import Cloud
+    from tunneldef.io import write
+
+    spec = synth.PairSpec(
+        tunnel=synth.TunnelSpec(length=length, density=points / (PERIMETER * length),
+                                chamber=True, chamber_chainage=0.4 * length, equipment=True,
+                                conveyor=True, roughness=0.02),
+        deformations=(synth.DeformationSpec(kind="roof_sag", chainage=length / 2,
+                                            amplitude=0.03),),
+        cmp_shift=1.0, yaw_deg=140.0, seed=11,
+    )
+    pair = synth.make_pair(spec)
+    write(folder / f"ref.{fmt}", pair.ref)
+    write(folder / f"cmp.{fmt}", pair.cmp)
+    # the aligned pair for C2C, binary PLY, coordinates only
+    write(folder / "c2c_ref.ply", Cloud(pair.ref.xyz))
+    write(folder / "c2c_cmp.ply", Cloud(pair.truth.cmp_xyz_in_ref))
+    return len(pair.ref), len(pair.cmp)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rows", default="60,350", help="lengths to run, m (60, 350, 1000)")
+    ap.add_argument("--keep", help="keep the pairs and outputs in this folder")
+    ap.add_argument("--reuse", action="store_true",
+                    help="reuse the pairs already in --keep")
+    ap.add_argument("detect_args", nargs="*", help="extra options for tunneldef detect")
+    args = ap.parse_args()
+    from tunneldef.io.stream import read_points
+
+    cc = shutil.which("CloudCompare")
+    lines = ["| points (ref + cmp) | length | format | detect wall s | detect peak RSS GB | "
+             "C2C wall s | C2C peak RSS GB | detect / C2C time | load avg |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for row in args.rows.split(","):
+        length = int(row)
+        points, fmt = ROWS[length]
+        base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="scale-"))
+        folder = base / f"{length}m"
+        folder.mkdir(parents=True, exist_ok=True)
+        try:
+            t = time.perf_counter()
+            if args.reuse and (folder / "c2c_cmp.ply").exists():
+                n_ref, n_cmp = (len(read_points(folder / f"{e}.{fmt}")[0]) for e in ("ref", "cmp"))
+            else:
+                n_ref, n_cmp = _pair(length, points, fmt, folder)
+            print(f"{length} m: pair ready in {time.perf_counter() - t:.0f} s", file=sys.stderr)
+            load = os.getloadavg()[0]
+            cmd = [sys.executable, "-c", "import sys; from tunneldef.cli import main; "
+                   "sys.exit(main())", "detect", str(folder / f"ref.{fmt}"),
+                   str(folder / f"cmp.{fmt}"), "-o", str(folder / f"out.{fmt}"), "--quiet",
+                   *args.detect_args]
+            d_wall, d_rss, code, tail = _run(cmd)
+            if code != 0:
+                print(f"detect failed ({code}): {tail}", file=sys.stderr)
+            c_wall = c_rss = float("nan")
+            if cc:
+                env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+                c_wall, c_rss, c_code, c_tail = _run(
+                    [cc, "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(folder / "c2c_ref.ply"),
+                     "-O", str(folder / "c2c_cmp.ply"), "-C2C_DIST"], env)
+                if c_code != 0:
+                    print(f"CloudCompare failed ({c_code}): {c_tail}", file=sys.stderr)
+            ratio = d_wall / c_wall if np.isfinite(c_wall) else float("nan")
+            status = "" if code == 0 else " (failed)"
+            lines.append(f"| {n_ref / 1e6:.2f} M + {n_cmp / 1e6:.2f} M | {length} m | {fmt} | "
+                         f"{d_wall:.1f}{status} | {d_rss:.2f} | {c_wall:.1f} | {c_rss:.2f} | "
+                         f"{ratio:.1f}x | {load:.1f} |")
+            print(lines[-1], file=sys.stderr)
+        finally:
+            if not args.keep:
+                shutil.rmtree(base, ignore_errors=True)
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

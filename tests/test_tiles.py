@@ -1,0 +1,92 @@
+"""Deformation in chainage tiles gives the untiled values, fields and danger zones alike."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tunneldef import synth
+from tunneldef.centerline import extract_centerline
+from tunneldef.config import Config
+from tunneldef.deformation import compute_deformation, danger_zones, section_statistics
+from tunneldef.tiles import tile_margin, tiled_deformation
+
+THRESHOLD = 0.02  # m: the pair's sag and bulge pass it
+
+
+def small_pair(length: float = 100.0, density: float = 60.0, seed: int = 5):
+    """A sparse synthetic pair with a chamber, equipment, a roof sag and a wall bulge."""
+    spec = synth.PairSpec(
+        tunnel=synth.TunnelSpec(length=length, density=density, chamber=True,
+                                chamber_chainage=length * 0.4, equipment=True, roughness=0.02),
+        deformations=(
+            synth.DeformationSpec(kind="roof_sag", chainage=length * 0.5, length=4.0, width=2.0,
+                                  amplitude=0.08),
+            synth.DeformationSpec(kind="wall_bulge", chainage=length * 0.25, length=3.0,
+                                  width=1.5, amplitude=0.06),
+        ),
+        cmp_shift=1.0, seed=seed,
+    )
+    return synth.make_pair(spec)
+
+
+def assert_fields_equal(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> None:
+    """Float fields within 1e-6 m (NaN where NaN), integer fields equal."""
+    assert sorted(a) == sorted(b)
+    for name, want in b.items():
+        got = np.asarray(a[name])
+        if want.dtype.kind == "f":
+            x, y = got.astype(np.float64), want.astype(np.float64)
+            np.testing.assert_array_equal(np.isnan(x), np.isnan(y), err_msg=name)
+            ok = ~np.isnan(y)
+            assert np.max(np.abs(x[ok] - y[ok]), initial=0.0) <= 1e-6, name
+        else:
+            np.testing.assert_array_equal(got, want, err_msg=name)
+
+
+def assert_zones_equal(za: list[dict], zb: list[dict]) -> None:
+    assert len(za) == len(zb)
+    for a, b in zip(za, zb, strict=True):
+        assert a.keys() == b.keys()
+        for key, v in b.items():
+            if isinstance(v, float):
+                assert a[key] == pytest.approx(v, abs=1e-6, nan_ok=True), key
+            else:
+                assert a[key] == v, key
+
+
+@pytest.fixture(scope="module")
+def registered():
+    """The pair with the compared epoch in the reference frame (the synthetic truth: the
+    registration is not what is tested here) and the reference centreline."""
+    pair = small_pair()
+    cfg = Config()
+    line = extract_centerline(pair.ref.xyz, slicing=cfg.slicing, settings=cfg.centerline)
+    return pair.ref.xyz, pair.truth.cmp_xyz_in_ref, line.centerline
+
+
+def _zones(d):
+    return danger_zones(d, threshold=THRESHOLD)
+
+
+@pytest.mark.parametrize("method", ["robust", "knn"])
+def test_four_tiles_equal_untiled(registered, method: str) -> None:
+    ref, cmp, line = registered
+    settings = Config().replace(deformation={"method": method}).deformation
+    whole = compute_deformation(ref, cmp, line, settings=settings)
+    tiled = tiled_deformation(ref, cmp, line, settings=settings, tile_length=25.0)
+    assert_fields_equal(tiled.fields(), whole.fields())
+    danger_t, zones_t = _zones(tiled)
+    danger_w, zones_w = _zones(whole)
+    if method == "robust":
+        assert len(zones_w) >= 2, "the sag and the bulge should be danger zones"
+    np.testing.assert_array_equal(danger_t, danger_w)
+    assert_zones_equal(zones_t, zones_w)
+    assert len(section_statistics(tiled)) == len(section_statistics(whole))
+
+
+def test_margin_covers_the_estimator_reach() -> None:
+    cfg = Config().deformation
+    assert tile_margin(cfg) > 1.0 + cfg.normal_radius + 2 * cfg.cylinder_radius
+    assert tile_margin(Config().replace(deformation={"method": "knn"}).deformation) >= (
+        3 * cfg.max_distance)
