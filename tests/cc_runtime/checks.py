@@ -37,13 +37,25 @@ def assert_xyz(got: np.ndarray, want: np.ndarray, what: str, tol: float = XYZ_TO
     assert err < tol, f"{what}: max |difference| {err:.3g} m"
 
 
-def assert_red_white_blue(rgb: dict[str, list[int]]) -> None:
+def assert_red_white_blue(
+    rgb: dict[str, list[int]], inside: tuple[bool, bool, bool, bool, bool] = (True,) * 5
+) -> None:
     """Colours at -limit, -limit/2, 0, +limit/2, +limit (keys in that order): red, pink,
-    white, light blue, blue (CloudCompare quantises the ramp: +-3 per channel)."""
+    white, light blue, blue (CloudCompare quantises the ramp: +-3 per channel). ``inside``
+    says which of the five values lie within the field's own range: CloudCompare colours only
+    those by the ramp (and clamps the saturation to the field's largest |value|)."""
     cols = [np.array(c) for c in rgb.values()]
     assert len(cols) == 5
-    np.testing.assert_allclose(cols[0], [255, 0, 0], atol=3)
-    np.testing.assert_allclose(cols[1], [255, 127, 127], atol=6)
-    np.testing.assert_allclose(cols[2], [255, 255, 255], atol=6)
-    np.testing.assert_allclose(cols[3], [127, 127, 255], atol=6)
-    np.testing.assert_allclose(cols[4], [0, 0, 255], atol=3)
+    want = ([255, 0, 0], [255, 127, 127], [255, 255, 255], [127, 127, 255], [0, 0, 255])
+    tols = (3, 6, 6, 6, 3)
+    for col, w, tol, ok in zip(cols, want, tols, inside, strict=True):
+        if ok:
+            np.testing.assert_allclose(col, w, atol=tol)
+
+
+def samples_inside(values: np.ndarray, limit: float) -> tuple[bool, ...]:
+    """Which of -limit, -limit/2, 0, +limit/2, +limit lie within the finite values' range."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    lo, hi = float(v.min()), float(v.max())
+    return tuple(lo - 1e-9 <= f * limit <= hi + 1e-9 for f in (-1.0, -0.5, 0.0, 0.5, 1.0))

@@ -57,6 +57,14 @@ class Runtime:
         runtime_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
         env["XDG_RUNTIME_DIR"] = str(runtime_dir)
         env.pop("PYTHONHOME", None)
+        # the runtime's embedded Python finds its standard library from the first `python3` on
+        # PATH: a virtual environment's (or pyenv's) would hide the system's dist-packages,
+        # where PySide2 and the runtime's own Python live; keep only system directories
+        env["PATH"] = os.pathsep.join(
+            d for d in env.get("PATH", "").split(os.pathsep)
+            if d and not (Path(d) / "pyvenv.cfg").exists()
+            and not (Path(d).parent / "pyvenv.cfg").exists() and ".pyenv" not in d
+        ) or "/usr/local/bin:/usr/bin:/bin"
         return env
 
     def run(

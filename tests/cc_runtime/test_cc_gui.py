@@ -12,7 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from .checks import MOVED_TOL, assert_fields_equal_core, assert_red_white_blue, assert_xyz
+from .checks import (
+    MOVED_TOL,
+    assert_fields_equal_core,
+    assert_red_white_blue,
+    assert_xyz,
+    samples_inside,
+)
 from .conftest import load_run
 
 pytestmark = pytest.mark.cloudcompare
@@ -57,7 +63,8 @@ def test_global_shift_and_detect_fields_equal_the_core(gui, core):
 def test_colour_scale_and_polylines(gui, core):
     step = gui.report["steps"]["detect"]
     assert step["displayed"] == "deformation" and step["symmetrical"]
-    assert_red_white_blue(step["rgb"])
+    lim = step["saturation_stop"]
+    assert_red_white_blue(step["rgb"], samples_inside(core.result.cloud.fields["deformation"], lim))
     res = core.result
     assert_xyz(gui.arrays["detect:reference_centerline"], res.ref_centerline.points, "ref line")
     assert_xyz(gui.arrays["detect:compared_centerline"], res.cmp_centerline.points, "cmp line")
