@@ -3,6 +3,9 @@
 Subcommands: ``info``, ``synth``, ``centerline``, ``register``, ``detect``, ``demo``, ``config``.
 User mistakes (missing file, bad format, non-overlapping epochs...) print one line to stderr and
 exit with code 2; ``--quiet`` silences progress. Heavy imports happen inside the commands.
+
+One idea at this length: the command line, one subcommand per job, its argument checks and its
+one-line errors.
 """
 
 from __future__ import annotations

@@ -5,6 +5,9 @@ compared epoch onto the reference (§3.2) -> per-point deformation against the r
 centreline (§3.3.1-3.3.2) -> per-section statistics and danger zones (§4.3). Hosts (CLI,
 CloudCompare plugin, scripts) convert their inputs to :class:`~tunneldef.cloud.Cloud`, call
 :func:`detect` and write ``result.cloud`` back.
+
+One idea at this length: the chaining of the stages for single drifts and for networks, with
+the checks and the result objects they return.
 """
 
 from __future__ import annotations

@@ -34,6 +34,9 @@ best-scoring one when they did not; if not even the first is possible, NotATunne
 slices' span is checked against the longest centreline the cloud can hold
 (:func:`plausible_length`) before a curve is sampled, so no time or memory goes into a curve
 the data cannot have.
+
+One idea at this length: stage 1's passes and the per-pass quality that decides which pass is
+kept; slicing, the section lines and the fit live in their own modules.
 """
 
 from __future__ import annotations

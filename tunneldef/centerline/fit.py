@@ -25,6 +25,9 @@ C, and resampled as a :class:`~tunneldef.curve.Centerline`. A station span or a
 curve far longer than the path through the centres raises
 :class:`~tunneldef.errors.ImplausibleExtentError` at once (stray points or a wrong unit)
 instead of being sampled for minutes, and the number of evaluations is capped.
+
+One idea at this length: one least-squares NURBS fit with its knots, banded solve, evaluation
+and the plausibility bounds that guard it.
 """
 
 from __future__ import annotations

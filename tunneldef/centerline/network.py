@@ -19,6 +19,9 @@ Steps of :func:`extract_network`:
 4. Junction nodes on the fitted curves (on the edge that passes through, where one does); an
    edge that ends at a junction is extended along its end tangent to the node, so the graph is
    connected.
+
+One idea at this length: the per-edge centreline passes of a drift network, with junction zones
+flagged and bridged.
 """
 
 from __future__ import annotations

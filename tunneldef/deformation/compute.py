@@ -3,6 +3,10 @@
 :func:`compute_deformation` runs the paper's KNN centroid (:mod:`.knn`) or the local-surface
 estimator (:mod:`.local_surface`, beyond the paper), after cutting the shell from clutter
 (:mod:`.shell`), and splits the change into horizontal and vertical parts (§3.3.2).
+
+One idea at this length: the stage's dispatch between the two estimators and what both share
+(shell cuts, whole-cloud grids, the pass for points the classifier left out, coverage,
+horizontal/vertical split).
 """
 
 from __future__ import annotations

@@ -76,6 +76,9 @@ References
 Lague, D., Brodu, N., Leroux, J. (2013). Accurate 3D comparison of complex topography with
 terrestrial laser scanner. ISPRS J. Photogramm. 82, 10-26. doi:10.1016/j.isprsjprs.2013.04.009
 Paper: Sensors 2024, 24, 2299, doi:10.3390/s24072299 (§3.3.1, Table 4, Table 5).
+
+One idea at this length: the local-surface estimator's passes (normals, cylinders, adaptive
+support, pooling, level of detection) over one set of core points.
 """
 
 from __future__ import annotations

@@ -10,6 +10,9 @@ and keeps as shell the points within a tolerance of that envelope.
 Everything is vectorised over all bins at once (one sort of all points by (bin, radius), one
 ``np.searchsorted`` over the concatenated envelopes of all windows); there is no loop over
 points or bins.
+
+One idea at this length: the shell-versus-clutter decision (envelopes, their matching between
+epochs, the mask) used by the estimator and the output field.
 """
 
 from __future__ import annotations

@@ -12,6 +12,9 @@ field is split into ``red``, ``green``, ``blue`` (and ``alpha``) uint8 fields an
 write; a field with COUNT k > 1 becomes ``name_0`` ... ``name_{k-1}``; ``_`` padding is skipped.
 Organized clouds (HEIGHT > 1) are read as a flat list. Files are written as binary unless the
 cloud was read from an ascii PCD.
+
+One idea at this length: the PCD format in all its variants (ASCII, binary, LZF-compressed,
+COUNT > 1 fields), read and written.
 """
 
 from __future__ import annotations

@@ -6,6 +6,10 @@ centreline registration (:mod:`.views`: cross-section, longitudinal and plan vie
 the whole-cloud baselines
 (:mod:`.baselines`: ``icp_point``, ``icp_plane``, ``gicp``, ``ndt``), all started from the same
 coarse PCA alignment with its direction ambiguity resolved.
+
+One idea at this length: the stage's driver, its steps (candidates, common stretch, shell
+refinement) and the overlap checks all decide one transform; the views, the along-axis shift
+and the refinement live in their own modules.
 """
 
 from __future__ import annotations

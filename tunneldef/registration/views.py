@@ -17,6 +17,9 @@ reference centroid (survey coordinates never enter the numerics):
    cross-correlation (eq. 12, generalised in :mod:`.axial`), and the mean lateral offset; on a
    curved tunnel the shift slides the compared centreline along the reference one;
 5. optional refinement (:mod:`.refine`): robust point-to-plane ICP on the stable shell.
+
+One idea at this length: the paper's three views (cross-section, longitudinal, plan) applied in
+turn, with the floor planes and the along-axis slide they need.
 """
 
 from __future__ import annotations

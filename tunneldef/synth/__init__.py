@@ -32,6 +32,9 @@ Notes
 Modules: ``design`` (specifications, outlines, deformation patches), ``scene`` (what both
 epochs share: axis, relief, clutter), ``sampling`` (drawing one epoch's points); this package
 chains them and holds the truth records.
+
+One idea at this length: the public face of the generator (pair, tunnel, truth, writing) that
+the tests, the demo and the benchmarks use.
 """
 
 from __future__ import annotations

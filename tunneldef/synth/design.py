@@ -1,5 +1,9 @@
 """Design of synthetic tunnels (:mod:`tunneldef.synth`): the specifications, their checks, the
-cross-section outlines and the deformation patches on them."""
+cross-section outlines and the deformation patches on them.
+
+One idea at this length: the specifications of a synthetic pair and the section outlines they
+are drawn on, validated in one place.
+"""
 
 from __future__ import annotations
 

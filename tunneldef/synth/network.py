@@ -22,6 +22,9 @@ Conventions are those of :mod:`tunneldef.synth`: section coordinates ``(u, v)``,
 positive to the left of increasing chainage, ``v`` up in the normal plane; the design axis is the
 section centre; displacement sign negative = the shell moved into the tunnel; noise sigma
 0.015 m (the scanner's ±3 cm read as 2 sigma).
+
+One idea at this length: synthetic drift networks and their per-branch truth (geometry,
+coverage, SLAM drift, strays); it reuses the single-tube sampler.
 """
 
 from __future__ import annotations

@@ -1,4 +1,8 @@
-"""One synthetic epoch's points drawn from the scene: shell, clutter, noise, shadows, holes."""
+"""One synthetic epoch's points drawn from the scene: shell, clutter, noise, shadows, holes.
+
+One idea at this length: drawing one epoch's points (surfaces, clutter, shadows, noise) from a
+shared scene.
+"""
 
 from __future__ import annotations
 
