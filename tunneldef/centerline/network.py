@@ -41,7 +41,7 @@ from ..curve import Centerline
 from ..errors import NetworkError, NotATunnelError
 from ..network import CenterlineNetwork, Junction, NetworkEdge
 from ..progress import ProgressCallback, notify
-from .extract import SliceRecord, analyse_slice
+from .extract import SliceRecord, _reject_jumps, analyse_slice
 from .fit import fit_centerline
 from .plan import PlanGrid, plan_grid
 from .skeleton import SkeletonGraph, skeleton_graph
@@ -116,25 +116,6 @@ def _axis_from_path(path: np.ndarray, grid: PlanGrid) -> Centerline:
     xy = ndimage.uniform_filter1d(xy, size=win, axis=0, mode="nearest")
     z = ndimage.uniform_filter1d(z, size=win, mode="nearest")
     return Centerline.from_polyline(np.column_stack([xy, z]), step=0.1)
-
-
-def _reject_jumps(records: list[SliceRecord], c: CenterlineConfig) -> None:
-    """Reject slices whose width or height jumps against their neighbours (as the single-tube
-    passes do: width against the 30th percentile, height against the median)."""
-    ok = [r for r in records if r.ok]
-    if len(ok) < 3:
-        return
-    st = np.array([r.station for r in ok])
-    wid = np.array([r.width for r in ok])
-    hei = np.array([r.height for r in ok])
-    for r in ok:
-        near = np.abs(st - r.station) <= c.neighbour_window
-        mw = float(np.percentile(wid[near], 30))
-        mh = float(np.median(hei[near]))
-        if abs(r.width - mw) > c.max_width_jump:
-            r.ok, r.reason = False, f"width {r.width:.2f} m vs {mw:.2f} m nearby"
-        elif abs(r.height - mh) > c.max_height_jump:
-            r.ok, r.reason = False, f"height {r.height:.2f} m vs {mh:.2f} m nearby"
 
 
 def _extent_walls(

@@ -141,6 +141,33 @@ def _selected_fields(cloud: Cloud, fields: Iterable[str] | None) -> dict[str, np
     return out
 
 
+
+@contextlib.contextmanager
+def atomic_target(path: Path):  # noqa: ANN201 - a context manager yielding a Path
+    """A temporary file beside ``path`` to write into; renamed onto ``path`` when the block
+    ends without error, removed otherwise (an existing ``path`` is never left half written).
+
+    Raises
+    ------
+    MissingFileError
+        The target folder does not exist.
+    """
+    p = Path(path)
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise MissingFileError(f"output folder does not exist: {folder}; create it first")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{p.suffix}", dir=folder)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        _set_mode(tmp, p)
+        os.replace(tmp, p)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
 def write(
     path: str | os.PathLike[str],
     cloud: Cloud,
@@ -180,21 +207,9 @@ def write(
         raise InvalidCloudError(f"write expects a Cloud, got {type(cloud).__name__}")
     xyz = check_points(cloud.xyz, name="cloud coordinates")
     selected = _selected_fields(cloud, fields)
-    folder = p.parent if str(p.parent) else Path(".")
-    if not folder.is_dir():
-        raise MissingFileError(f"output folder does not exist: {folder}; create it first")
     start = time.perf_counter()
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{p.suffix}", dir=folder)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
+    with atomic_target(p) as tmp:
         module.write(tmp, xyz, selected, cloud.meta, ext=p.suffix.lower())
-        _set_mode(tmp, p)
-        os.replace(tmp, p)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        raise
     logger.info(
         "wrote %s: %d points, %d fields in %.2f s",
         p,

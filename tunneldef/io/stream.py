@@ -12,10 +12,8 @@
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -24,7 +22,7 @@ import numpy as np
 
 from ..cloud import Cloud
 from ..errors import InvalidCloudError, MissingFileError
-from .core import _family, _set_mode, read, write
+from .core import _family, atomic_target, read, write
 
 __all__ = ["read_points", "write_with_fields", "CHUNK_POINTS"]
 
@@ -196,22 +194,10 @@ def write_with_fields(
         cloud = Cloud(xyz, {**cloud.fields, **fields}, meta)
         write(p, cloud)
         return
-    folder = p.parent if str(p.parent) else Path(".")
-    if not folder.is_dir():
-        raise MissingFileError(f"output folder does not exist: {folder}; create it first")
     start = time.perf_counter()
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{p.suffix}", dir=folder)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
+    with atomic_target(p) as tmp:
         _write_las_chunks(tmp, src, xyz, fields, keep, compress=p.suffix.lower() == ".laz",
                           note=note)
-        _set_mode(tmp, p)
-        os.replace(tmp, p)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        raise
     logger.info("wrote %s: %d points in chunks in %.2f s", p, len(xyz),
                 time.perf_counter() - start)
 

@@ -68,6 +68,7 @@ from .design import (
     SectionSpec,
     TunnelSpec,
     _check_deformations,
+    _rigid_motion,
     section_outline,
 )
 from .network import (
@@ -279,10 +280,6 @@ def make_tunnel(
 
 
 
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
 
 
 def make_pair(
@@ -333,18 +330,9 @@ def make_pair(
         cmp = _sample_epoch(scene, *cmp_range, g_cmp, spec.deformations, heaps_cmp)
     notify(progress, "synthetic pair", 0.95)
 
-    yaw = g_motion.uniform(0.0, 360.0) if spec.yaw_deg is None else float(spec.yaw_deg)
-    phi = g_motion.uniform(0.0, 2 * np.pi)
-    tilt_axis = np.array([np.cos(phi), np.sin(phi), 0.0])
-    rot = _rotation(np.array([0.0, 0.0, 1.0]), np.radians(yaw)) @ _rotation(
-        tilt_axis, np.radians(spec.tilt_deg)
+    motion, transform, yaw, tilt_axis = _rigid_motion(
+        g_motion, spec.yaw_deg, spec.tilt_deg, spec.translation
     )
-    motion = np.eye(4)
-    motion[:3, :3] = rot
-    motion[:3, 3] = np.asarray(spec.translation, dtype=np.float64)
-    transform = np.eye(4)
-    transform[:3, :3] = rot.T
-    transform[:3, 3] = -rot.T @ motion[:3, 3]
 
     local = cmp.pop("xyz")
     cmp_xyz = apply_transform(motion, local, blas=False)

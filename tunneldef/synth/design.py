@@ -470,3 +470,32 @@ def _check_deformations(tunnel: TunnelSpec, deformations: tuple[DeformationSpec,
                 f"({outline.perimeter / 2:.2f} m)"
             )
 
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix (3, 3) by ``angle`` (radians) about ``axis`` (Rodrigues)."""
+    k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
+
+
+def _rigid_motion(
+    g: np.random.Generator, yaw_deg: float | None, tilt_deg: float,
+    translation: tuple[float, float, float],
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """The compared epoch's arbitrary frame: a yaw (random when None), a tilt about a random
+    horizontal axis and a translation. Returns ``(motion, transform, yaw_deg, tilt_axis)``:
+    ``motion`` maps the design frame into the compared epoch's, ``transform`` (its inverse)
+    maps the compared epoch into the reference's."""
+    yaw = g.uniform(0.0, 360.0) if yaw_deg is None else float(yaw_deg)
+    phi = g.uniform(0.0, 2 * np.pi)
+    tilt_axis = np.array([np.cos(phi), np.sin(phi), 0.0])
+    rot = _rotation(np.array([0.0, 0.0, 1.0]), np.radians(yaw)) @ _rotation(
+        tilt_axis, np.radians(tilt_deg)
+    )
+    motion = np.eye(4)
+    motion[:3, :3] = rot
+    motion[:3, 3] = np.asarray(translation, dtype=np.float64)
+    transform = np.eye(4)
+    transform[:3, :3] = rot.T
+    transform[:3, 3] = -rot.T @ motion[:3, 3]
+    return motion, transform, yaw, tilt_axis

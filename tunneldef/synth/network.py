@@ -57,6 +57,7 @@ from .design import (
     TunnelSpec,
     _check_deformations,
     _patch_centre,
+    _rigid_motion,
     section_outline,
 )
 from .drift import DriftWalk, random_drift
@@ -992,10 +993,6 @@ def _strays(branches, spec: NetworkPairSpec, rng: np.random.Generator) -> np.nda
     return np.concatenate(out) if out else np.empty((0, 3))
 
 
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
 
 
 def _apply(transform: np.ndarray, xyz: np.ndarray) -> np.ndarray:
@@ -1131,18 +1128,9 @@ def make_network_pair(
         cmp_seen, cmp_truth, cmp_int = _epoch(
             branches, openings, scenes, spec, cov_cmp, spec.deformations, g_cmp, g_dcmp, g_scmp
         )
-    yaw = g_motion.uniform(0.0, 360.0) if spec.yaw_deg is None else float(spec.yaw_deg)
-    phi = g_motion.uniform(0.0, 2 * np.pi)
-    tilt_axis = np.array([np.cos(phi), np.sin(phi), 0.0])
-    rot = _rotation(np.array([0.0, 0.0, 1.0]), np.radians(yaw)) @ _rotation(
-        tilt_axis, np.radians(spec.tilt_deg)
+    motion, transform, yaw, tilt_axis = _rigid_motion(
+        g_motion, spec.yaw_deg, spec.tilt_deg, spec.translation
     )
-    motion = np.eye(4)
-    motion[:3, :3] = rot
-    motion[:3, 3] = np.asarray(spec.translation, dtype=np.float64)
-    transform = np.eye(4)
-    transform[:3, :3] = rot.T
-    transform[:3, 3] = -rot.T @ motion[:3, 3]
     cmp_xyz = _apply(motion, cmp_seen)
     del cmp_seen
     meta = {"source": "tunneldef.synth.network", "network": spec.network.name, "seed": spec.seed}
