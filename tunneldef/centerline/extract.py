@@ -384,18 +384,23 @@ def _curve_to_world(axis: Centerline) -> Callable[[np.ndarray], np.ndarray]:
     return f
 
 
+def rejection_summary(records: list[SliceRecord]) -> str:
+    """Why slices were rejected, most common first: ``"no wall line (12), ..."``."""
+    reasons: dict[str, int] = {}
+    for r in records:
+        if not r.ok:
+            key = r.reason.split(":")[0].split(" (")[0]
+            reasons[key] = reasons.get(key, 0) + 1
+    return ", ".join(f"{k} ({v})" for k, v in sorted(reasons.items(), key=lambda x: -x[1]))
+
+
 def _fit(
     records: list[SliceRecord], c: CenterlineConfig, meta: dict, max_length: float = np.inf
 ) -> Centerline:
     ok = [r for r in records if r.ok]
     n_slices = len(records)
     if len(ok) < max(c.min_slices, c.degree + 1):
-        reasons: dict[str, int] = {}
-        for r in records:
-            if not r.ok:
-                key = r.reason.split(":")[0].split(" (")[0]
-                reasons[key] = reasons.get(key, 0) + 1
-        common = ", ".join(f"{k} ({v})" for k, v in sorted(reasons.items(), key=lambda x: -x[1]))
+        common = rejection_summary(records)
         raise NotATunnelError(
             f"only {len(ok)} of {n_slices} slices show a floor, a roof and two walls "
             f"(rejected: {common or 'none'}); is this a tunnel scan? check units (metres) and "

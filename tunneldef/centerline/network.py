@@ -41,7 +41,7 @@ from ..curve import Centerline
 from ..errors import NetworkError, NotATunnelError
 from ..network import CenterlineNetwork, Junction, NetworkEdge
 from ..progress import ProgressCallback, notify
-from .extract import SliceRecord, _reject_jumps, analyse_slice
+from .extract import SliceRecord, _reject_jumps, analyse_slice, rejection_summary
 from .fit import fit_centerline
 from .plan import PlanGrid, plan_grid
 from .skeleton import SkeletonGraph, skeleton_graph
@@ -227,12 +227,7 @@ def _fit_edge(
             r.weight = 1.0
         return cl
     if len(ok) < max(c.min_slices, c.degree + 1):
-        reasons: dict[str, int] = {}
-        for r in records:
-            if not r.ok:
-                key = r.reason.split(":")[0].split(" (")[0]
-                reasons[key] = reasons.get(key, 0) + 1
-        common = ", ".join(f"{k} ({v})" for k, v in sorted(reasons.items(), key=lambda x: -x[1]))
+        common = rejection_summary(records)
         raise NetworkError(
             f"{name}: only {len(ok)} of {len(records)} slices show a tunnel section "
             f"(rejected: {common or 'none'}); raise network.min_branch_length to leave it out"
