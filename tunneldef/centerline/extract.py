@@ -300,6 +300,22 @@ def analyse_slice(
     return rf, walls, band
 
 
+def record_lines(rec: SliceRecord, rf: RoofFloor, walls: WallLines | None) -> bool:
+    """Put a slice's section lines and how they were found into its record; False (with the
+    reason recorded) when the floor, the roof or a wall is missing."""
+    rec.floor, rec.roof = rf.floor, rf.roof
+    rec.methods = {"floor": rf.method, "roof": rf.method, "left": "", "right": ""}
+    if walls is None:
+        rec.reason = rf.reason
+        return False
+    rec.left, rec.right = walls.left, walls.right
+    rec.methods["left"] = rec.methods["right"] = walls.method
+    if not walls.ok:
+        rec.reason = walls.reason
+        return False
+    return True
+
+
 def _slice_pass(
     local: np.ndarray,
     slicing: SlicingConfig,
@@ -320,15 +336,7 @@ def _slice_pass(
         rf, walls, _ = analyse_slice(
             local[sl.index], sl.station, slicing=slicing, settings=settings, leans=leans
         )
-        rec.floor, rec.roof = rf.floor, rf.roof
-        rec.methods = {"floor": rf.method, "roof": rf.method, "left": "", "right": ""}
-        if walls is None:
-            rec.reason = rf.reason
-            continue
-        rec.left, rec.right = walls.left, walls.right
-        rec.methods["left"] = rec.methods["right"] = walls.method
-        if not walls.ok:
-            rec.reason = walls.reason
+        if not record_lines(rec, rf, walls):
             continue
         rec.width, rec.height = rec.left - rec.right, rec.roof - rec.floor
         rec.ok = True

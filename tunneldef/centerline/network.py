@@ -41,7 +41,13 @@ from ..curve import Centerline
 from ..errors import NetworkError, NotATunnelError
 from ..network import CenterlineNetwork, Junction, NetworkEdge
 from ..progress import ProgressCallback, notify
-from .extract import SliceRecord, _reject_jumps, analyse_slice, rejection_summary
+from .extract import (
+    SliceRecord,
+    _reject_jumps,
+    analyse_slice,
+    record_lines,
+    rejection_summary,
+)
 from .fit import fit_centerline
 from .plan import PlanGrid, plan_grid
 from .skeleton import SkeletonGraph, skeleton_graph
@@ -176,15 +182,9 @@ def _slice_edge(
             continue
         rf, walls, _ = analyse_slice(local[s.index], s.station, slicing=sl, settings=c,
                                      leans=leans)
-        rec.floor, rec.roof = rf.floor, rf.roof
-        rec.methods = {"floor": rf.method, "roof": rf.method, "left": "", "right": ""}
-        if walls is None:
-            rec.reason = rf.reason
-            continue
-        rec.left, rec.right = walls.left, walls.right
-        rec.methods["left"] = rec.methods["right"] = walls.method
-        if not walls.ok:
-            rec.reason = walls.reason
+        if not record_lines(rec, rf, walls):
+            if walls is None:
+                continue
             edges = _extent_walls(local[s.index], rf.floor, rf.roof, c)
             if edges is None:
                 continue
