@@ -186,6 +186,9 @@ def test_detect_network_measures_each_branch() -> None:
     assert {b["branch"] for b in s["branches"]} == {0, 1, 2}
     assert all(b["common_length_m"] > 0.6 * b["length_m"] for b in s["branches"])
     assert all("branch" in x for x in s["sections"])
+    # no per-edge self-checks yet: the result says it is unverified, in the summary and files
+    assert s["quality"]["verified"] is False and "UNVERIFIED" in s["quality"]["status"]
+    assert "UNVERIFIED" in r.cloud.meta["note"]
 
 
 @pytest.mark.slow

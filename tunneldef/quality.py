@@ -31,6 +31,8 @@ __all__ = [
 
 #: The words every output of a run whose checks failed carries (summary, file headers).
 UNVERIFIED = "UNVERIFIED: quality checks failed, result written on request"
+#: What a drift-network result says of itself: its stages have no self-checks yet.
+NETWORK_UNCHECKED = "UNVERIFIED: drift-network results are not quality-checked yet"
 
 
 class QualityError(TunnelDefError):
