@@ -86,8 +86,8 @@ class FakeCore:
     def __init__(self, pair, error=None):
         self.pair, self.error, self.calls = pair, error, []
 
-    def detect(self, ref, cmp, config=None, *, progress=None):
-        self.calls.append(SimpleNamespace(ref=ref, cmp=cmp, config=config))
+    def detect(self, ref, cmp, config=None, *, progress=None, tiles=None):
+        self.calls.append(SimpleNamespace(ref=ref, cmp=cmp, config=config, tiles=tiles))
         for i in range(5):
             if progress is not None:
                 progress("reference centreline" if i < 3 else "deformation", i / 4)
@@ -156,6 +156,9 @@ def test_detect_writes_fields_and_adds_entities(pycc, plugin, core, pair):
     assert np.abs(call.ref.xyz - pair.ref).max() < 1e-5
     assert np.abs(call.cmp.xyz - pair.cmp).max() < 1e-5
     assert call.config.deformation.k == 4 and call.config.danger.threshold == 0.02
+    # the deformation stage runs in chainage tiles, as `tunneldef detect` does
+    assert call.tiles is not None and call.tiles["engine"] is not None
+    assert call.tiles["memory_gb"] > 0
 
     f = _fields(cmp_e)
     assert set(f) == {
@@ -219,10 +222,10 @@ def test_detect_move_original(pycc, plugin, core, pair):
 class SlowCore(FakeCore):
     """A core that keeps reporting progress (a long computation) until it is cancelled."""
 
-    def detect(self, ref, cmp, config=None, *, progress=None):
+    def detect(self, ref, cmp, config=None, *, progress=None, tiles=None):
         import time
 
-        self.calls.append(SimpleNamespace(ref=ref, cmp=cmp, config=config))
+        self.calls.append(SimpleNamespace(ref=ref, cmp=cmp, config=config, tiles=tiles))
         for i in range(500):  # at most 5 s
             progress("deformation", i / 500)
             time.sleep(0.01)
@@ -401,8 +404,8 @@ def test_detect_action_with_real_core(pycc, plugin, monkeypatch):
     seen = {}
     real_detect = pipeline.detect
 
-    def spy(ref, cmp, config=None, *, progress=None):
-        seen["result"] = real_detect(ref, cmp, config, progress=progress)
+    def spy(ref, cmp, config=None, *, progress=None, tiles=None):
+        seen["result"] = real_detect(ref, cmp, config, progress=progress, tiles=tiles)
         seen["ref"], seen["cmp"] = ref, cmp
         return seen["result"]
 

@@ -291,7 +291,8 @@ def tiled_deformation(
         notify(progress, "tiles", 1.0)
         logger.info("one tile: the survey fits %.1f m", tile_length)
         return compute_deformation(ref_xyz, cmp_xyz, centerline, settings=settings,
-                                   coverage=coverage, progress=under(progress, "deformation"))
+                                   coverage=coverage, registration_sigma=registration_sigma,
+                                   progress=under(progress, "deformation"))
     base = Path(workdir) if workdir is not None else None
     tmp = Path(tempfile.mkdtemp(prefix="tunneldef-tiles-", dir=base))
     try:

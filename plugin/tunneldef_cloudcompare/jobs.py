@@ -48,11 +48,24 @@ DEFORMATION_FIELDS = (
 )
 
 
-def compute_detect(ref: Any, cmp: Any, config: Any = None, *, progress: Any = None) -> Any:
-    """Worker-thread part of "Detect deformation": :func:`tunneldef.pipeline.detect`."""
+def compute_detect(
+    ref: Any, cmp: Any, config: Any = None, *, progress: Any = None, memory_gb: float = 1.5
+) -> Any:
+    """Worker-thread part of "Detect deformation": :func:`tunneldef.pipeline.detect`.
+
+    The deformation stage runs in chainage tiles on Dask's local threaded scheduler, as
+    ``tunneldef detect`` does, so its working memory is bounded by ``memory_gb`` (GB) and not
+    by the survey; the tiles' temporary files go to the system's temporary folder.
+    """
+    import tempfile
+
+    from tunneldef.engine import open_engine
     from tunneldef.pipeline import detect
 
-    return detect(ref, cmp, config, progress=progress)
+    with open_engine(memory_gb=memory_gb) as engine:
+        tiles = {"memory_gb": engine.tile_memory_gb, "engine": engine,
+                 "workdir": tempfile.gettempdir()}
+        return detect(ref, cmp, config, progress=progress, tiles=tiles)
 
 
 def result_fields(cloud: Any) -> dict[str, np.ndarray]:
