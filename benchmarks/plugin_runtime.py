@@ -16,7 +16,8 @@ for comparison. Prints one row per job: runs, completed, crashed, errors, mean s
 
 ``large``: a synthetic pair of ``--points`` per epoch (PLY files), loaded by CloudCompare and
 given to *Detect deformation* (``plugin.detect_on``), then the same files through the core
-alone (``tunneldef.pipeline.detect`` in a plain Python process). Prints wall time and peak
+alone (``tunneldef.pipeline.detect`` in a plain Python process, in chainage tiles as the
+plugin and ``tunneldef detect`` run it). Prints wall time and peak
 resident memory of the whole CloudCompare process and of the core-alone process, and
 CloudCompare's memory once the clouds are loaded.
 
@@ -96,14 +97,17 @@ def _child_peak_gb() -> float:
 
 
 _CORE_ALONE = """
-import resource, sys, time
+import resource, sys, tempfile, time
+from tunneldef.engine import open_engine
 from tunneldef.io import read
 from tunneldef.pipeline import detect
 t = time.perf_counter()
 ref, cmp = read(sys.argv[1]), read(sys.argv[2])
 t_read = time.perf_counter() - t
 t = time.perf_counter()
-res = detect(ref, cmp)
+with open_engine() as engine:  # the tiles of `tunneldef detect` and of the plugin
+    res = detect(ref, cmp, tiles={"memory_gb": engine.tile_memory_gb, "engine": engine,
+                                  "workdir": tempfile.gettempdir()})
 t_detect = time.perf_counter() - t
 print(t_read, t_detect, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
 """
