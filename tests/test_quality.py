@@ -196,6 +196,27 @@ def test_verify_registration_tells_a_slide_from_the_truth(chamber_pair) -> None:
     assert not bad.axial_disagreement <= 3.0
 
 
+def test_verify_registration_samples_the_whole_overlap() -> None:
+    """A cloud of fewer points than the check's sample, stored in chainage order (as scanners
+    and ``synth`` write them): the plane fits must not see only its first stretch, whose end
+    reads as a slide of centimetres (a 25 m chambered pair read -17 cm at the truth)."""
+    spec = synth.PairSpec(
+        tunnel=synth.TunnelSpec(length=24.0, density=250.0, noise_sigma=0.01, chamber=True,
+                                chamber_chainage=15.0),
+        deformations=(synth.DeformationSpec(kind="roof_sag", chainage=8.0, amplitude=0.03),),
+        cmp_shift=1.0,
+        seed=3,
+    )
+    pair = synth.make_pair(spec)
+    assert 100_000 < len(pair.ref) < 200_000  # kept whole by the check's first subsample
+    ch = pair.truth.centerline.project(pair.ref.xyz).chainage
+    assert np.all(np.diff(ch[:: len(ch) // 50]) > -1.0)  # stored roughly in chainage order
+    good = verify_registration(pair.ref.xyz, pair.cmp.xyz, pair.truth.centerline,
+                               transform=pair.truth.transform)
+    assert abs(good.fine_shift) < 0.005 and abs(good.wide_shift) < 0.005
+    assert good.scale_disagreement <= 3.0 and good.axial_disagreement <= 3.0
+
+
 # --------------------------------------------------------------------------- pipeline, CLI
 
 

@@ -144,9 +144,10 @@ def verify_registration(
     """
     origin = np.asarray(ref_xyz[0], dtype=np.float64)
     # the section images want many points (as many as the registration used), the plane fits
-    # far fewer: a large random subset for the first, its head for the second
-    ref_big = random_subset(np.asarray(ref_xyz) - origin, _IMAGE_SAMPLE, 11)
-    cmp_big = random_subset(np.asarray(cmp_xyz), _IMAGE_SAMPLE, 12)
+    # far fewer: a large random subset in random order for the first, its head for the second
+    # (a head of the cloud in its own order would be one end of the tunnel only)
+    ref_big = _shuffled_subset(np.asarray(ref_xyz) - origin, _IMAGE_SAMPLE, 11)
+    cmp_big = _shuffled_subset(np.asarray(cmp_xyz), _IMAGE_SAMPLE, 12)
     if transform is not None:
         cmp_big = apply_transform(np.asarray(transform, dtype=np.float64), cmp_big)
     cmp_big = cmp_big - origin
@@ -221,6 +222,16 @@ def verify_registration(
         wide_shift=float(wide.shift),
         scale_disagreement=float(scales),
     )
+
+
+def _shuffled_subset(xyz: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """At most ``n`` of the points in random order (seeded), so that any head of the result is
+    a random subset too; :func:`~tunneldef.spatial.random_subset` keeps a small cloud whole,
+    in its own order."""
+    sub = random_subset(xyz, n, seed)
+    if sub is xyz:
+        sub = xyz[np.random.default_rng(seed).permutation(len(xyz))]
+    return sub
 
 
 _DETERMINED = 1.0  # m: a coarse spread up to this is one basin (the registration's rule)
