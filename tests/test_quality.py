@@ -244,12 +244,13 @@ def test_detect_refuses_on_a_failed_check_and_force_writes_unverified(
     q = json.loads(summary.read_text())["quality"]
     assert q["status"] == UNVERIFIED and q["verified"] is False and not q["enforced"]
     assert "registration.axial_scales" in q["failed"]
-    assert "deformation.significant_share" in q["failed"]
+    # (past a slide of metres the epochs' cylinders mostly cover different stretches and read
+    # NaN, so the strict deformation limit need not fail as well: it must be evaluated)
     names = [c["check"] for c in q["checks"]]
     for name in ("reference_centreline.usable_slices", "registration.fit_excess",
                  "registration.axial_agreement", "registration.centreline_difference",
                  "registration.axial_pose", "registration.axial_scales",
-                 "deformation.significant_share"):
+                 "registration.axial_residual", "deformation.significant_share"):
         assert name in names
     by = {c["check"]: c for c in q["checks"]}
     assert by["registration.axial_scales"]["figure"] > 10.0

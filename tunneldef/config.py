@@ -271,6 +271,11 @@ class QualityConfig:
     max_axial_disagreement: float = _p(3.0, "ours: section correlation and point-to-plane "
                                             "slide, and the slide at two normal scales, must "
                                             "agree within 3 combined sigmas")
+    max_axial_residual: float = _p(0.01, "ours: an independent point-to-plane slide from the "
+                                         "registered pose, at both normal scales, may find it "
+                                         "off along the axis by at most 1 cm, the accuracy "
+                                         "the sweep (benchmarks/sweep.py) holds registrations "
+                                         "to")
     max_pose_mismatch: float = _p(1.0, "ours: the section images at the registered position "
                                        "may match worse than at the best shift by at most "
                                        "their noise (coarse_shift's own tolerance)")

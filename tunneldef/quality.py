@@ -214,6 +214,13 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                "0.15 m and 0.3 m scale (relief drowned in noise); the position is not "
                "verified", f"point-to-plane slide {check.fine_shift:+.4f} m (normals over "
                f"0.15 m) vs {check.wide_shift:+.4f} m (0.3 m)"),
+        _check("registration.axial_residual", _common_slide(check.fine_shift, check.wide_shift),
+               qc.max_axial_residual, "<=", "m",
+               "an independent point-to-plane fit at both normal scales finds the compared "
+               "epoch off along the tunnel; the surfaces that fix the position are too weak "
+               "for the noise (denser or less noisy scans, or a stretch with a chamber)",
+               f"remaining slide {check.fine_shift:+.4f} m (normals over 0.15 m) and "
+               f"{check.wide_shift:+.4f} m (0.3 m); the smaller when both agree in sign"),
         _check("registration.axial_agreement", check.axial_disagreement,
                qc.max_axial_disagreement, "<=", "sigma",
                "section correlation and point-to-plane fit disagree on the position along the "
@@ -221,6 +228,14 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                f"section correlation {check.coarse_shift:+.3f} m, point-to-plane "
                f"{check.fine_shift:+.4f} +- {check.fine_sigma:.4f} m"),
     ]
+
+
+def _common_slide(fine: float, wide: float) -> float:
+    """The along-axis slide both normal scales agree on: the smaller magnitude when they have
+    the same sign, else 0 (NaN when either is missing)."""
+    if not (np.isfinite(fine) and np.isfinite(wide)):
+        return np.nan
+    return float(min(abs(fine), abs(wide))) if fine * wide > 0 else 0.0
 
 
 def deformation_checks(deformation: Any, qc: QualityConfig) -> list[Check]:
