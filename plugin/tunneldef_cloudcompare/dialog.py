@@ -36,10 +36,13 @@ def qt_widgets() -> Any:
     return None
 
 
-def show_message(text: str, *, title: str = "tunneldef", error: bool = False) -> None:
-    """A message box when Qt is available; always also in the log (CloudCompare's console)."""
+def show_message(
+    text: str, *, title: str = "tunneldef", error: bool = False, box: bool = True
+) -> None:
+    """A message box when Qt is available and ``box`` is true (there is a window to show it
+    in); always also in the log (CloudCompare's console)."""
     (log.error if error else log.info)("%s", text)
-    qw = qt_widgets()
+    qw = qt_widgets() if box else None
     if qw is None:
         print(f"[{title}] {text}")  # noqa: T201 - CloudCompare's console is stdout
         return

@@ -41,10 +41,17 @@ def _console(text: str) -> None:
     print(text)  # noqa: T201 - host code: this is the user-facing console
 
 
+def _has_window() -> bool:
+    """True in CloudCompare's window; False in ``-PYTHON_SCRIPT`` (command-line) mode, where
+    the instance has no selection and nobody can close a message box."""
+    return hasattr(pycc.GetInstance(), "getSelectedEntities")
+
+
 def _error(text: str) -> None:
     from .dialog import show_message
 
-    show_message(text, error=True)
+    # a modal box in command-line mode (often offscreen) would wait for ever
+    show_message(text, error=True, box=_has_window())
 
 
 def _run_with_progress(
@@ -101,7 +108,7 @@ def _runtime_ok(action: str) -> bool:
 def _selected_clouds(count: int, action: str) -> list[Any] | None:
     """The selected clouds if there are ``count``, else None (after a one-line message)."""
     cc = pycc.GetInstance()
-    if not hasattr(cc, "getSelectedEntities"):  # -PYTHON_SCRIPT mode: no window, no selection
+    if not _has_window():  # -PYTHON_SCRIPT mode: no window, no selection
         _error(
             f"{action}: needs CloudCompare's window (no selection in command-line mode); "
             "use cloudcompare_scripts/detect_in_cloudcompare.py there"

@@ -74,3 +74,32 @@ def test_colour_scale_red_white_blue_centred_on_zero(run, core):
     d = np.asarray(core.result.cloud.fields["deformation"], dtype=np.float32)
     shown = min(limit, float(np.nanmax(np.abs(d))))
     assert scale["saturation"] == pytest.approx([0.0, shown], rel=1e-6)
+
+
+def test_a_refused_detection_returns_with_one_line_instead_of_a_modal_box(cc_runtime, tmp_path):
+    """In command-line mode nobody can close a message box: a refusal (here two clouds that
+    are no tunnel) must come back as a console line and a None, not wait for ever."""
+    import subprocess
+
+    from tunneldef.cloud import Cloud
+    from tunneldef.io import write
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for name in ("a", "b"):
+        path = tmp_path / f"{name}.ply"
+        write(path, Cloud(np.round(rng.uniform(0.0, 5.0, (20_000, 3)) * 2**10) / 2**10))
+        paths.append(path)
+    work = tmp_path / "run"
+    work.mkdir()
+    try:
+        proc = cc_runtime.run_script(
+            HERE / "script_actions.py", paths, workdir=work, timeout=120,
+            env_extra={"TDCC_OUT": str(work), "TDCC_ACTIONS": "detect"},
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail("CloudCompare hung on a refused detection (a modal message box?)")
+    run = load_run(work, proc)
+    assert run.report.get("finished"), run.log
+    assert len(run.report["errors"]) == 1 and "returned None" in run.report["errors"][0]
+    assert "Detect deformation: " in proc.stdout and "tunnel" in proc.stdout
