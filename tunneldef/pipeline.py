@@ -123,7 +123,8 @@ def register_epochs(
         notify(progress, "registration check", 0.0)
         check = verify_registration(ref.xyz, cmp.xyz, ref_ex.centerline, transform=reg.transform,
                                     cmp_centerline=cmp_ex.centerline,
-                                    search=config.registration.axial_search or 10.0)
+                                    search=config.registration.axial_search or 10.0,
+                                    points_per_metre=config.registration.max_points_per_metre)
         notify(progress, "registration check", 1.0)
         report.add(registration_checks(check, config.quality))
     return RegisteredPair(ref_ex, cmp_ex, reg, report, check)

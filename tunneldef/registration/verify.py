@@ -18,6 +18,7 @@ with it:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,8 +33,8 @@ from .views import axial_correction, normals
 
 __all__ = ["RegistrationCheck", "verify_registration"]
 
-_SAMPLE = 25_000  # points per epoch and half the checks use
-_IMAGE_SAMPLE = 200_000  # points per epoch of the section images (the registration's least)
+_SAMPLE = 25_000  # least points per epoch and half the plane fits use
+_IMAGE_SAMPLE = 200_000  # least points per epoch of the section images (as the registration)
 _REACH = 0.1  # m: correspondences farther apart are not the same surface
 _NORMAL_RADIUS = 0.15  # m, as the registration's normals
 
@@ -118,6 +119,7 @@ def verify_registration(
     transform: np.ndarray | None = None,
     cmp_centerline: Centerline | None = None,
     search: float = 10.0,
+    points_per_metre: int = 1500,
 ) -> RegistrationCheck:
     """Independent figures of a registration (see the module notes).
 
@@ -137,6 +139,12 @@ def verify_registration(
     search : float
         Largest along-axis shift the section correlation looks for, metres (at most a quarter
         of the common stretch is searched, at least 2 m).
+    points_per_metre : int
+        Points per metre of the reference centreline in the section images, and in each half
+        of the plane fits (at least 200 000 and 25 000): the registration's own density
+        (``[registration] max_points_per_metre``). A fixed count would thin a long tunnel
+        until its normals and its one chamber are lost (350 m: slides of 2 cm read where the
+        registration was 3 mm off).
 
     Returns
     -------
@@ -146,17 +154,23 @@ def verify_registration(
     # the section images want many points (as many as the registration used), the plane fits
     # far fewer: a large random subset in random order for the first, its head for the second
     # (a head of the cloud in its own order would be one end of the tunnel only)
-    ref_big = _shuffled_subset(np.asarray(ref_xyz) - origin, _IMAGE_SAMPLE, 11)
-    cmp_big = _shuffled_subset(np.asarray(cmp_xyz), _IMAGE_SAMPLE, 12)
+    length = float(ref_centerline.length)
+    n_image = max(_IMAGE_SAMPLE, int(points_per_metre * length))
+    n_plane = max(2 * _SAMPLE, int(2 * points_per_metre * length))
+    n_all = max(n_image, n_plane)
+    ref_all = _shuffled_subset(np.asarray(ref_xyz) - origin, n_all, 11)
+    cmp_all = _shuffled_subset(np.asarray(cmp_xyz), n_all, 12)
     if transform is not None:
-        cmp_big = apply_transform(np.asarray(transform, dtype=np.float64), cmp_big)
-    cmp_big = cmp_big - origin
+        cmp_all = apply_transform(np.asarray(transform, dtype=np.float64), cmp_all)
+    cmp_all = cmp_all - origin
     cl = ref_centerline.transformed(_shift_matrix(-origin))
     # only the stretch both epochs cover, 0.5 m inside the reference's ends
-    mp = cl.project(cmp_big)
-    inside = (mp.chainage > 0.5) & (mp.chainage < cl.length - 0.5)
-    ref = ref_big[: 2 * _SAMPLE]
-    cmp = cmp_big[inside][: 2 * _SAMPLE]
+    ma = cl.project(cmp_all)
+    inside_all = (ma.chainage > 0.5) & (ma.chainage < cl.length - 0.5)
+    ref_big = ref_all[:n_image]
+    mp = _head(ma, n_image)  # the compared section image's points
+    ref = ref_all[:n_plane]
+    cmp = cmp_all[inside_all][:n_plane]
     ref_a, ref_b = ref[0::2], ref[1::2]
     cmp_a, cmp_b = cmp[0::2], cmp[1::2]
     ref_bn = normals(ref_b, _NORMAL_RADIUS)
@@ -222,6 +236,11 @@ def verify_registration(
         wide_shift=float(wide.shift),
         scale_disagreement=float(scales),
     )
+
+
+def _head(p: Any, n: int) -> Any:
+    """The first ``n`` points of a projection."""
+    return type(p)(**{f.name: getattr(p, f.name)[:n] for f in dataclasses.fields(p)})
 
 
 def _shuffled_subset(xyz: np.ndarray, n: int, seed: int) -> np.ndarray:
