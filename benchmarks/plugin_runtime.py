@@ -136,7 +136,8 @@ def large(points: float, length: float, workdir: Path) -> dict[str, float]:
     report = json.loads((work / "report.json").read_text())
     det = report["actions"][-1]
     if "error" in det:
-        raise SystemExit(det["error"])
+        said = [ln for ln in proc.stdout.splitlines() if "Detect deformation" in ln]
+        raise SystemExit(det["error"] + "\n".join(said[-3:]))
     out["points_ref"], out["points_cmp"] = report["sizes"]
     out["cc_detect_s"] = det["seconds"]
     out["cc_loaded_gb"] = report["memory_loaded"]["VmRSS"]

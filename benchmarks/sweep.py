@@ -32,6 +32,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
@@ -194,6 +195,9 @@ def run_case(case: Case, config: Config | None = None) -> Case:
         result = detect(pair.ref, pair.cmp, config or Config())
     except TunnelDefError as exc:
         case.outcome, case.reason = "refused", str(exc)
+        report = getattr(exc, "report", None)  # a failed quality check: the figures so far
+        if report is not None:
+            case.info["quality"] = report.to_dict()
     except Exception as exc:  # noqa: BLE001 - a crash is an outcome of the sweep
         case.outcome, case.reason = "CRASH", f"{type(exc).__name__}: {exc}"
     else:
@@ -239,6 +243,20 @@ def table(cases: list[Case]) -> str:
     return "\n".join(out)
 
 
+def _record(c: Case) -> dict[str, Any]:
+    """One case as JSON: what was drawn, the outcome, and every quality figure."""
+    def num(v: float) -> float | None:
+        return float(v) if np.isfinite(v) else None
+
+    checks = c.info.get("quality", {}).get("checks", [])
+    return {
+        "seed": c.seed, "pair": c.describe(), "featured": c.featured,
+        "drawn_density": c.drawn_density, "outcome": c.outcome, "reason": c.reason,
+        "reg_rms": num(c.reg_rms), "centre_p95": num(c.centre_p95), "seconds": c.seconds,
+        "checks": {k["check"]: k["figure"] for k in checks},
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", type=int, default=200, help="number of random pairs (200)")
@@ -247,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--replay", type=int, nargs="*", help="run only these case seeds")
     ap.add_argument("--budget", type=int, default=250_000,
                     help="most points per epoch (thins the drawn density; 0: no thinning)")
+    ap.add_argument("--jsonl", help="also write one JSON line per case (outcome, errors and "
+                    "every quality check's figure) to this file")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
     seeds = args.replay or [args.seed * 1_000_000 + i for i in range(args.cases)]
@@ -256,6 +276,9 @@ def main(argv: list[str] | None = None) -> int:
     for s in seeds:
         c = run_case(draw(s, args.budget))
         cases.append(c)
+        if args.jsonl:
+            with open(args.jsonl, "a", encoding="utf-8") as f:
+                f.write(json.dumps(_record(c)) + "\n")
         print(f"| {c.seed} | {c.describe()}{' F' if c.featured else ''} | {c.outcome} | "
               f"{1000 * c.reg_rms:.1f} | {1000 * c.centre_p95:.1f} | {c.seconds:.0f} | "
               f"{c.reason} |", flush=True)

@@ -253,14 +253,12 @@ class QualityConfig:
                              "false (or the CLI's --force) writes the result marked 'unverified'")
     min_usable_share: float = _p(0.5, "ours: at least half the slices of the kept centreline pass "
                                       "must show a floor, a roof and two walls")
-    max_centre_residual: float = _p(0.05, "ours: 95th percentile distance of the used slice "
-                                          "centres from the curve, m (below 3 cm on dense "
-                                          "synthetic and real drifts; a curve 6 cm off its "
-                                          "centres in places is not their centreline)")
-    max_curve_uncertainty: float = _p(0.03, "ours: 95 % uncertainty of a centreline from its "
-                                            "centres' scatter, m (p95 residual x sqrt(control "
-                                            "points / centres)); 3 cm is the accuracy the sweep "
-                                            "(benchmarks/sweep.py) holds centrelines to")
+    max_curve_uncertainty: float = _p(0.03, "ours: 95 % uncertainty of a centreline, taken as "
+                                            "the p95 distance of its slice centres from it (no "
+                                            "averaging credit: the centres' errors are "
+                                            "correlated along the tunnel), m; 3 cm is the "
+                                            "accuracy the sweep (benchmarks/sweep.py) holds "
+                                            "centrelines to")
     max_fit_excess: float = _p(0.008, "ours: cross-epoch point-to-plane misfit the scans' own "
                                       "noise does not explain, m (synthetic pairs: correct "
                                       "1.8 mm, 2 cm lateral offset 9.8 mm, 0.1 deg yaw 8.6 mm)")
@@ -272,8 +270,8 @@ class QualityConfig:
                                             "slide, and the slide at two normal scales, must "
                                             "agree within 3 combined sigmas")
     max_axial_residual: float = _p(0.01, "ours: an independent point-to-plane slide from the "
-                                         "registered pose, at both normal scales, may find it "
-                                         "off along the axis by at most 1 cm, the accuracy "
+                                         "registered pose may find it off along the axis by "
+                                         "at most 1 cm at either normal scale, the accuracy "
                                          "the sweep (benchmarks/sweep.py) holds registrations "
                                          "to")
     max_pose_mismatch: float = _p(1.0, "ours: the section images at the registered position "
