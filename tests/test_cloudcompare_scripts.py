@@ -149,7 +149,8 @@ def _entity(pycc, xyz, name, shift):
 
 
 def _fake_detect(result):
-    def detect(ref, cmp, config=None, *, progress=None):
+    def detect(ref, cmp, config=None, *, progress=None, tiles=None):
+        assert tiles is not None and tiles["engine"] is not None  # as `tunneldef detect` runs
         progress("deformation", 1.0)
         assert len(cmp) == len(result.cloud)
         return result
