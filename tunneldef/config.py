@@ -267,8 +267,7 @@ class QualityConfig:
                                                 "either curve's p95 error; 3 cm as the sweep "
                                                 "holds centrelines to (benchmarks/sweep.py)")
     max_axial_disagreement: float = _p(3.0, "ours: section correlation and point-to-plane "
-                                            "slide, and the slide at two normal scales, must "
-                                            "agree within 3 combined sigmas")
+                                            "slide must agree within 3 combined sigmas")
     max_axial_residual: float = _p(0.01, "ours: an independent point-to-plane slide from the "
                                          "registered pose may find it off along the axis by "
                                          "at most 1 cm at either normal scale, the accuracy "

@@ -213,12 +213,6 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                f"section mismatch at the registered position vs the best shift, in units of "
                f"its noise (best shift {check.coarse_shift:+.2f} m, equally good within "
                f"{check.coarse_spread:.2f} m)"),
-        _check("registration.axial_scales", check.scale_disagreement,
-               qc.max_axial_disagreement, "<=", "sigma",
-               "the surfaces that fix the position along the tunnel give different answers at "
-               "0.15 m and 0.3 m scale (relief drowned in noise); the position is not "
-               "verified", f"point-to-plane slide {check.fine_shift:+.4f} m (normals over "
-               f"0.15 m) vs {check.wide_shift:+.4f} m (0.3 m)"),
         _check("registration.axial_residual",
                _remaining_slide(check.fine_shift, check.wide_shift),
                qc.max_axial_residual, "<=", "m",
@@ -226,7 +220,8 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                "epoch off along the tunnel; the surfaces that fix the position are too weak "
                "for the noise (denser or less noisy scans, or a stretch with a chamber)",
                f"remaining slide {check.fine_shift:+.4f} m (normals over 0.15 m) and "
-               f"{check.wide_shift:+.4f} m (0.3 m); the larger of the two"),
+               f"{check.wide_shift:+.4f} m (0.3 m); the larger of the two (their "
+               f"disagreement: {check.scale_disagreement:.2f} sigma)"),
         _check("registration.axial_agreement", check.axial_disagreement,
                qc.max_axial_disagreement, "<=", "sigma",
                "section correlation and point-to-plane fit disagree on the position along the "
