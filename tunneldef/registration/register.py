@@ -231,6 +231,7 @@ def _best_candidate(
                     axial_search=rc.axial_search
                     or 0.5 * (ctx.ref_cl.length + ctx.cmp_cl.length),
                     ref_normals=ctx.ref_n,
+                    axial_points=_axial_points(ctx.ref_cl, rc),
                 )
                 local, stages, info = fine.transform, fine.stages, dict(fine.info)
                 info["axial_uncertainty"] = fine.axial_uncertainty
@@ -298,6 +299,7 @@ def _common_stretch(
             axial_search=1.0,
             ref_normals=ctx.ref_n,
             common=common,
+            axial_points=_axial_points(ctx.ref_cl, ctx.rc),
         )
         local = fine.transform @ local
         world_stages["common_stretch"] = f_ref_inv @ local @ coarse
@@ -349,6 +351,13 @@ def _refine_on_shell(
     world_stages["refine"] = f_ref_inv @ local @ coarse
     timings["refine"] = time.perf_counter() - t0
     return local
+
+
+def _axial_points(ref_cl: Centerline, rc: RegistrationConfig) -> int:
+    """Compared points of the slide along the axis: 60 000, or ``max_points_per_metre`` of
+    the reference centreline for long tunnels (350 m with one chamber: 60 000 left its end
+    walls a few dozen points and the registration 11 mm off along the axis)."""
+    return max(60_000, int(rc.max_points_per_metre * ref_cl.length))
 
 
 def _point_budget(frame: TunnelFrame, rc: RegistrationConfig) -> int:

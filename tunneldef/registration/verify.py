@@ -195,11 +195,15 @@ def verify_registration(
     cmp_proj = (mp.chainage, mp.lateral, mp.vertical)
     c_shift, c_spread = coarse_shift(ref_proj, cmp_proj, cl, search=reach)
     pose_ratio = _pose_ratio(ref_proj, cmp_proj, cl, reach)
-    _, fine = axial_correction(ref, normals(ref, _NORMAL_RADIUS), cmp, cl)
+    # as many compared points per metre as the plane fits hold (at least the registration's
+    # 60 000): over 350 m, 60 000 leave a chamber's end walls a few dozen points, and the
+    # slide then moved by centimetres with the rounding of the input coordinates
+    slide_points = max(60_000, min(len(cmp), int(points_per_metre * length)))
+    _, fine = axial_correction(ref, normals(ref, _NORMAL_RADIUS), cmp, cl, slide_points)
     # the same slide with normals over twice the radius: a real surface across the axis gives
     # the same answer at both scales, relief drowned in noise does not (a 2.8 m drift with
     # 1.9 cm relief under 2.9 cm noise: 0 vs 8.7 cm, where the registration was 7.5 cm off)
-    _, wide = axial_correction(ref, normals(ref, 2 * _NORMAL_RADIUS), cmp, cl)
+    _, wide = axial_correction(ref, normals(ref, 2 * _NORMAL_RADIUS), cmp, cl, slide_points)
     scales = (
         abs(fine.shift - wide.shift) / float(np.hypot(fine.uncertainty, wide.uncertainty))
         if fine.informative and wide.informative

@@ -281,6 +281,7 @@ def align_views(
     ref_normals: np.ndarray | None = None,
     common: tuple[float, float] | None = None,
     plan_iterations: int = 2,
+    axial_points: int = 60_000,
 ) -> ViewsResult:
     """Stages 2-4 of the centreline registration (paper §3.2.2-3.2.4).
 
@@ -303,6 +304,9 @@ def align_views(
         is already close (a second pass), the floors and the centreline lines are taken over
         this common stretch only, the compared floor being selected with the reference
         centreline, so that both planes and both lines describe the same piece of tunnel.
+    axial_points : int
+        Most compared points of the point-to-plane slide along the axis (a random sample);
+        long tunnels want more, so that the few surfaces facing along the axis keep enough.
 
     Returns
     -------
@@ -393,7 +397,7 @@ def align_views(
         moved = apply_transform(total, cmp_xyz)
         pm = ref_cl.project(moved)
         tan = ref_cl.frame_at(pm.chainage)[0]
-        sel = _axial_sample(pm.chainage, ref_cl.length, common)
+        sel = _axial_sample(pm.chainage, ref_cl.length, common, axial_points)
         shift = fine_shift(
             ref_xyz,
             ref_n,
@@ -466,7 +470,8 @@ _AXIAL_MAX_POINTS = 60_000
 
 
 def _axial_sample(
-    chainage: np.ndarray, length: float, common: tuple[float, float] | None
+    chainage: np.ndarray, length: float, common: tuple[float, float] | None,
+    max_points: int = _AXIAL_MAX_POINTS,
 ) -> np.ndarray:
     """Compared points the along-axis alignment uses: a random sample of at most 60 000
     points lying over the reference, at least 0.5 m inside its ends (and inside ``common``).
@@ -485,8 +490,8 @@ def _axial_sample(
     if sel.sum() < 200:
         sel = np.ones(chainage.shape[0], dtype=bool)
     idx = np.flatnonzero(sel)
-    if idx.size > _AXIAL_MAX_POINTS:
-        keep = np.random.default_rng(0).choice(idx, _AXIAL_MAX_POINTS, replace=False)
+    if idx.size > max_points:
+        keep = np.random.default_rng(0).choice(idx, max_points, replace=False)
         sel = np.zeros(chainage.shape[0], dtype=bool)
         sel[keep] = True
     return sel
@@ -497,12 +502,14 @@ def axial_correction(
     ref_normals: np.ndarray,
     cmp_xyz: np.ndarray,
     ref_cl: Centerline,
+    max_points: int = _AXIAL_MAX_POINTS,
 ) -> tuple[np.ndarray, AxialShift]:
     """A last along-axis correction (4, 4) and its uncertainty, by the 1-DOF point-to-plane
-    alignment of :func:`.axial.fine_shift` (compared points already in place)."""
+    alignment of :func:`.axial.fine_shift` (compared points already in place; at most
+    ``max_points`` of them, at random, are used)."""
     pm = ref_cl.project(cmp_xyz)
     tan = ref_cl.frame_at(pm.chainage)[0]
-    sel = _axial_sample(pm.chainage, ref_cl.length, None)
+    sel = _axial_sample(pm.chainage, ref_cl.length, None, max_points)
     shift = fine_shift(
         ref_xyz,
         ref_normals,
