@@ -234,8 +234,7 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
 def _remaining_slide(fine: float, wide: float) -> float:
     """The larger along-axis slide either normal scale still finds from the registered pose
     (NaN when both are missing). The larger, not the one they agree on: when the two scales
-    disagree, the position is known no better than their spread (random pairs with +-2-3 cm
-    noise passed at 11-13 mm off with one scale reading 14 mm and the other 0.5 mm)."""
+    disagree, the position is known no better than their spread."""
     v = [abs(x) for x in (fine, wide) if np.isfinite(x)]
     return float(max(v)) if v else np.nan
 
