@@ -27,6 +27,11 @@ Usage::
 
     python benchmarks/sweep.py --cases 200 --seed 1
     python benchmarks/sweep.py --replay 1000123      # one case by its printed seed
+    python benchmarks/sweep.py --no-enforce --jsonl calib.jsonl   # every check's figure
+
+``--no-enforce`` runs every case to the end with the checks recorded but not enforced: each
+case is then sorted by the truth alone, and its JSON line lists the checks that would have
+refused it (``failed``), so the checks' limits can be judged against the truth.
 """
 
 from __future__ import annotations
@@ -254,6 +259,7 @@ def _record(c: Case) -> dict[str, Any]:
         "drawn_density": c.drawn_density, "outcome": c.outcome, "reason": c.reason,
         "reg_rms": num(c.reg_rms), "centre_p95": num(c.centre_p95), "seconds": c.seconds,
         "checks": {k["check"]: k["figure"] for k in checks},
+        "failed": [k["check"] for k in checks if k["verdict"] == "fail"],
     }
 
 
@@ -267,14 +273,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="most points per epoch (thins the drawn density; 0: no thinning)")
     ap.add_argument("--jsonl", help="also write one JSON line per case (outcome, errors and "
                     "every quality check's figure) to this file")
+    ap.add_argument("--no-enforce", action="store_true",
+                    help="record the quality checks without enforcing them (each case is then "
+                    "sorted by the truth; --jsonl lists the checks that would have refused it)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
+    config = Config().replace(quality={"enforce": False}) if args.no_enforce else Config()
     seeds = args.replay or [args.seed * 1_000_000 + i for i in range(args.cases)]
     cases = []
     print("| seed | pair (F: along-axis feature) | outcome | reg mm | centre p95 mm | s | reason |")
     print("|---|---|---|---:|---:|---:|---|")
     for s in seeds:
-        c = run_case(draw(s, args.budget))
+        c = run_case(draw(s, args.budget), config)
         cases.append(c)
         if args.jsonl:
             with open(args.jsonl, "a", encoding="utf-8") as f:
