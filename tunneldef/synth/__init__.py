@@ -49,7 +49,6 @@ import numpy as np
 
 from ..cloud import Cloud
 from ..curve import Centerline
-from ..io import write as write_cloud
 from ..progress import ProgressCallback, notify, timed_stage
 from ..transforms import apply_transform
 from .design import (
@@ -84,7 +83,7 @@ from .network import (
     network_250m_pair,
     write_network_pair,
 )
-from .sampling import _sample_epoch
+from .sampling import _sample_epoch, write_epochs
 from .scene import _Axis, _draw_heaps, _make_scene
 
 __all__ = [
@@ -387,12 +386,7 @@ def write_pair(pair: SynthPair, out_dir: str | Path, *, fmt: str = "ply") -> dic
     dict
         ``{"ref": path, "cmp": path, "truth": path}``.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    fmt = fmt.lower().lstrip(".")
-    paths = {"ref": out / f"ref.{fmt}", "cmp": out / f"cmp.{fmt}", "truth": out / "truth.npz"}
-    for key, cloud in (("ref", pair.ref), ("cmp", pair.cmp)):
-        write_cloud(paths[key], cloud)
+    paths = write_epochs(pair.ref, pair.cmp, out_dir, fmt)
     t = pair.truth
     np.savez_compressed(
         paths["truth"],

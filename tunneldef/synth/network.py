@@ -42,7 +42,6 @@ from ..cloud import Cloud
 from ..config import check_positive
 from ..curve import Centerline, Projection
 from ..errors import ConfigError
-from ..io import write as write_cloud
 from ..progress import ProgressCallback, notify, timed_stage
 from .design import (
     _C_OUTLIER,
@@ -61,7 +60,7 @@ from .design import (
     section_outline,
 )
 from .drift import DriftWalk, random_drift
-from .sampling import _SHADOW_SEEN, _SHADOW_STEP, _Epoch, _intensity
+from .sampling import _SHADOW_SEEN, _SHADOW_STEP, _Epoch, _intensity, write_epochs
 from .scene import _draw_heaps, _make_scene
 
 __all__ = [
@@ -1169,12 +1168,7 @@ def write_network_pair(
     dict
         ``{"ref": path, "cmp": path, "truth": path}``.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    fmt = fmt.lower().lstrip(".")
-    paths = {"ref": out / f"ref.{fmt}", "cmp": out / f"cmp.{fmt}", "truth": out / "truth.npz"}
-    write_cloud(paths["ref"], pair.ref)
-    write_cloud(paths["cmp"], pair.cmp)
+    paths = write_epochs(pair.ref, pair.cmp, out_dir, fmt)
     t = pair.truth
     arrays: dict[str, np.ndarray] = {"transform": t.transform, "junctions": t.junction_positions}
     for name, ep in (("ref", t.ref), ("cmp", t.cmp)):

@@ -7,6 +7,8 @@ shared scene.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -434,3 +436,17 @@ def _sample_epoch(
     ep.outliers()
     return ep.finish()
 
+
+def write_epochs(ref: Any, cmp: Any, out_dir: str | Path, fmt: str) -> dict[str, Path]:
+    """Write the two epochs as ``ref.<fmt>`` and ``cmp.<fmt>`` into ``out_dir`` (created)
+    through :func:`tunneldef.io.write`; returns ``{"ref", "cmp", "truth"}`` paths, the last
+    (``truth.npz``) for the caller to write."""
+    from ..io import write as write_cloud
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fmt = fmt.lower().lstrip(".")
+    paths = {"ref": out / f"ref.{fmt}", "cmp": out / f"cmp.{fmt}", "truth": out / "truth.npz"}
+    write_cloud(paths["ref"], ref)
+    write_cloud(paths["cmp"], cmp)
+    return paths
