@@ -185,6 +185,9 @@ def test_verify_registration_tells_a_slide_from_the_truth(chamber_pair) -> None:
     assert good.coarse_spread <= 1.0
     assert abs(good.coarse_shift) <= 0.25 and abs(good.fine_shift) < 0.01
     assert good.axial_disagreement < 3.0
+    # started at and 2 cm either side of the truth, the slide ends in one place (the
+    # chamber's ends draw it back)
+    assert good.axial_spread < 0.005
     slide = np.eye(4)
     slide[0, 3] = 1.5  # the reference runs along x: a pure slide along the axis
     bad = verify_registration(pair.ref.xyz, pair.cmp.xyz, truth_cl,
@@ -250,7 +253,8 @@ def test_detect_refuses_on_a_failed_check_and_force_writes_unverified(
     for name in ("reference_centreline.usable_slices", "registration.fit_excess",
                  "registration.axial_agreement", "registration.centreline_difference",
                  "registration.axial_pose",
-                 "registration.axial_residual", "deformation.significant_share"):
+                 "registration.axial_residual", "registration.axial_convergence",
+                 "deformation.significant_share"):
         assert name in names
     by = {c["check"]: c for c in q["checks"]}
     assert by["registration.axial_residual"]["figure"] > 0.05

@@ -273,6 +273,11 @@ class QualityConfig:
                                          "at most 1 cm at either normal scale, the accuracy "
                                          "the sweep (benchmarks/sweep.py) holds registrations "
                                          "to")
+    max_axial_spread: float = _p(0.01, "ours: the point-to-plane slide started at the "
+                                       "registered position and 2 cm either side of it must "
+                                       "end within 1 cm of one another (the accuracy the sweep "
+                                       "holds registrations to); a wider spread means the "
+                                       "slide sticks where it starts")
     max_pose_mismatch: float = _p(1.0, "ours: the section images at the registered position "
                                        "may match worse than at the best shift by at most "
                                        "their noise (coarse_shift's own tolerance)")

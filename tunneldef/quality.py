@@ -222,6 +222,14 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                f"remaining slide {check.fine_shift:+.4f} m (normals over 0.15 m) and "
                f"{check.wide_shift:+.4f} m (0.3 m); the larger of the two (their "
                f"disagreement: {check.scale_disagreement:.2f} sigma)"),
+        _check("registration.axial_convergence", check.axial_spread,
+               qc.max_axial_spread, "<=", "m",
+               "started 2 cm either side of the registered position, the point-to-plane slide "
+               "ends elsewhere: the surfaces along the tunnel do not fix the position against "
+               "the noise (denser or less noisy scans, or a stretch with a chamber)",
+               f"the slide ends {_mm(check.fine_shift)} from the registered position, "
+               f"{_mm(check.probe_shifts[0])} and {_mm(check.probe_shifts[1])} when started "
+               "2 cm before and after it; the figure is their spread"),
         _check("registration.axial_agreement", check.axial_disagreement,
                qc.max_axial_disagreement, "<=", "sigma",
                "section correlation and point-to-plane fit disagree on the position along the "
@@ -229,6 +237,10 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                f"section correlation {check.coarse_shift:+.3f} m, point-to-plane "
                f"{check.fine_shift:+.4f} +- {check.fine_sigma:.4f} m"),
     ]
+
+
+def _mm(v: float) -> str:
+    return f"{1000 * v:+.1f} mm" if np.isfinite(v) else "nowhere (nothing to hold on to)"
 
 
 def _remaining_slide(fine: float, wide: float) -> float:

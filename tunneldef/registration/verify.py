@@ -37,6 +37,7 @@ _SAMPLE = 25_000  # least points per epoch and half the plane fits use
 _IMAGE_SAMPLE = 200_000  # least points per epoch of the section images (as the registration)
 _REACH = 0.1  # m: correspondences farther apart are not the same surface
 _NORMAL_RADIUS = 0.15  # m, as the registration's normals
+_PROBE = 0.02  # m: the slide is started this far either side of the registered position
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,16 @@ class RegistrationCheck:
         1) / (3 sqrt(2 / n))``, the tolerance of :func:`.axial.coarse_shift`): <= 1 when the
         registered position is among the equally good ones. Unlike ``coarse_shift`` it stays
         meaningful on a stretch with several equally good matches.
+    probe_shifts : tuple of float
+        Where the point-to-plane slide (0.15 m normals) ends when started ``_PROBE`` (2 cm)
+        before and after the registered position along the axis, metres from that position.
+    axial_spread : float
+        The spread (max - min) of where the slide ends from the registered position and from
+        the two probes: 0 when the surfaces truly fix the position (the slide is drawn back
+        to one place from either side; a few mm with a chamber), up to 4 cm when the slide
+        sticks where it starts (relief drowned in noise, a featureless drift: the registered
+        position is then only where the registration happened to stop). NaN when the slide
+        found nothing to hold on to.
     wide_shift, scale_disagreement : float
         The point-to-plane slide again with normals over 0.3 m instead of 0.15 m, and
         ``|fine_shift - wide_shift|`` in units of their combined sigma: <= 3 when the surfaces
@@ -96,10 +107,16 @@ class RegistrationCheck:
     pose_mismatch: float = np.nan
     wide_shift: float = np.nan
     scale_disagreement: float = np.nan
+    probe_shifts: tuple[float, float] = (np.nan, np.nan)
+    axial_spread: float = np.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (non-finite values become None)."""
-        return {k: (float(v) if np.isfinite(v) else None) for k, v in self.__dict__.items()}
+        def num(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {k: ([num(x) for x in v] if isinstance(v, tuple) else num(v))
+                for k, v in self.__dict__.items()}
 
 
 def _plane_sigma(src: np.ndarray, dst: np.ndarray, dst_n: np.ndarray, tree: cKDTree) -> float:
@@ -199,7 +216,21 @@ def verify_registration(
     # 60 000): over 350 m, 60 000 leave a chamber's end walls a few dozen points, and the
     # slide then moved by centimetres with the rounding of the input coordinates
     slide_points = max(60_000, min(len(cmp), int(points_per_metre * length)))
-    _, fine = axial_correction(ref, normals(ref, _NORMAL_RADIUS), cmp, cl, slide_points)
+    ref_n = normals(ref, _NORMAL_RADIUS)
+    _, fine = axial_correction(ref, ref_n, cmp, cl, slide_points)
+    # started 2 cm either side of the registered position, the same slide must end where it
+    # ends from there: a sparse, noisy rough-rock pair registered 11.9 mm off read a remaining
+    # slide of 0.3 mm, and ended at -10.8 and +12.5 mm from starts 2 cm off (it had stuck)
+    tan = cl.frame_at(cl.project(cmp).chainage)[0]
+    probes = []
+    for side in (-1.0, 1.0):
+        _, p = axial_correction(ref, ref_n, cmp + side * _PROBE * tan, cl, slide_points)
+        probes.append(side * _PROBE + p.shift if p.informative else np.nan)
+    # nothing to judge when the slide itself found no surface across the axis; a start 2 cm
+    # off that finds none is as bad as one that sticks
+    ends = np.array([fine.shift, *probes])
+    spread = (float(np.ptp(ends)) if np.all(np.isfinite(ends)) else np.inf) \
+        if fine.informative else np.nan
     # the same slide with normals over twice the radius: a real surface across the axis gives
     # the same answer at both scales, relief drowned in noise does not (a 2.8 m drift with
     # 1.9 cm relief under 2.9 cm noise: 0 vs 8.7 cm, where the registration was 7.5 cm off)
@@ -239,6 +270,8 @@ def verify_registration(
         pose_mismatch=pose_ratio,
         wide_shift=float(wide.shift),
         scale_disagreement=float(scales),
+        probe_shifts=(float(probes[0]), float(probes[1])),
+        axial_spread=spread,
     )
 
 
