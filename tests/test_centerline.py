@@ -394,3 +394,31 @@ def test_nurbs_least_squares_smooths_noise_and_bridges_gaps() -> None:
 def test_fit_nurbs_needs_degree_plus_one_centres() -> None:
     with pytest.raises(NotATunnelError, match="only 3 slice centres"):
         fit_nurbs(np.eye(3), degree=3)
+
+
+def test_crown_height_lifts_an_arch_peak_to_its_crown_and_leaves_a_flat_roof() -> None:
+    """Points on a semicircular arch (radius 2.5 m, crown at 1.5 m) with +-2.5 cm noise: the
+    narrow density peak lies a centimetre or more below the crown, the trimmed parabola reads
+    the crown within 3 mm. On a flat roof (with a cable hanging 20 cm below) the peak stands."""
+    from tunneldef.centerline.roof_floor import crown_height
+
+    rng = np.random.default_rng(4)
+    theta = rng.uniform(0.0, np.pi, 20_000)
+    radius, spring = 2.5, -1.0
+    u = radius * np.cos(theta)
+    v = spring + radius * np.sin(theta)
+    floor_u = rng.uniform(-2.5, 2.5, 8_000)
+    u = np.r_[u, floor_u] + rng.normal(0, 0.025, 28_000)
+    v = np.r_[v, np.full(8_000, -1.2)] + rng.normal(0, 0.025, 28_000)
+    peak = roof_floor_lines(v).roof
+    assert 1.5 - peak > 0.01  # the density peak sits below the crown
+    crown = crown_height(u, v, peak, 0.0, 2.5)
+    assert abs(crown - 1.5) < 0.003
+    # a flat roof 1.4 m up and a cable below it: the peak is kept or barely moved
+    fu = rng.uniform(-2.0, 2.0, 10_000)
+    fv = np.r_[np.full(10_000, 1.4), np.full(600, 1.2)] + rng.normal(0, 0.02, 10_600)
+    fu = np.r_[fu, rng.uniform(-0.05, 0.05, 600)]
+    fv_all = np.r_[fv, np.full(4_000, -1.0) + rng.normal(0, 0.02, 4_000)]
+    fu_all = np.r_[fu, rng.uniform(-2.0, 2.0, 4_000)]
+    flat_peak = roof_floor_lines(fv_all).roof
+    assert abs(crown_height(fu_all, fv_all, flat_peak, 0.0, 2.0) - 1.4) < 0.004

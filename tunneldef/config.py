@@ -97,6 +97,10 @@ class CenterlineConfig:
     kde_bandwidth: float = _p(0.1, "paper §4.1, Fig. 13: Gaussian KDE window 0.1 m")
     refine_bandwidth: float = _p(0.02, "ours: narrow KDE that refines a line within the paper's "
                                        "window (removes the bias of the wide window, ~1 cm)")
+    crown_fit: bool = _p(True, "ours: read the roof from a trimmed parabola through the points "
+                               "near its density peak, at the section's middle (an arch's "
+                               "peak lies below its crown by part of the noise); false: the "
+                               "peak itself, as the paper")
     min_peak_share: float = _p(0.05, "ours: a roof/floor peak must hold >= 5% of the slice's "
                                      "points within +-kde_bandwidth (noise, cables do not)")
     grid_cell: float = _p(0.02, "ours: pixel of the 2-D linear-kernel density image, m")

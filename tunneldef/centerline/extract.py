@@ -41,6 +41,7 @@ kept; slicing, the section lines and the fit live in their own modules.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -56,7 +57,7 @@ from ..errors import NotATunnelError
 from ..frame import TunnelFrame, principal_frame
 from ..progress import ProgressCallback, notify
 from .fit import fit_centerline
-from .roof_floor import RoofFloor, estimate_roll, roof_floor_lines
+from .roof_floor import RoofFloor, crown_height, estimate_roll, roof_floor_lines
 from .slicing import slice_along_axis
 from .walls import WallLines, estimate_wall_leans, wall_lines
 
@@ -297,6 +298,10 @@ def analyse_slice(
         w_ref=rf.floor + 0.5 * (c.wall_band_low + c.wall_band_high) * h,
         leans=leans,
     )
+    if c.crown_fit and walls.ok:
+        roof = crown_height(local[:, 1], local[:, 2], rf.roof, 0.5 * (walls.left + walls.right),
+                            0.5 * (walls.left - walls.right))
+        rf = dataclasses.replace(rf, roof=roof)
     return rf, walls, band
 
 
