@@ -399,8 +399,9 @@ def test_fit_nurbs_needs_degree_plus_one_centres() -> None:
 def test_crown_height_lifts_an_arch_peak_to_its_crown_and_leaves_a_flat_roof() -> None:
     """Points on a semicircular arch (radius 2.5 m, crown at 1.5 m) with +-2.5 cm noise: the
     narrow density peak lies a centimetre or more below the crown, the trimmed parabola reads
-    the crown within 3 mm. On a flat roof (with a cable hanging 20 cm below) the peak stands."""
-    from tunneldef.centerline.roof_floor import crown_height
+    the crown within 3 mm and the lift is taken. On a flat roof (with a cable hanging 20 cm
+    below) the roof stays within 4 mm of the truth."""
+    from tunneldef.centerline.roof_floor import Crown, crown_height
 
     rng = np.random.default_rng(4)
     theta = rng.uniform(0.0, np.pi, 20_000)
@@ -413,7 +414,8 @@ def test_crown_height_lifts_an_arch_peak_to_its_crown_and_leaves_a_flat_roof() -
     peak = roof_floor_lines(v).roof
     assert 1.5 - peak > 0.01  # the density peak sits below the crown
     crown = crown_height(u, v, peak, 0.0, 2.5)
-    assert abs(crown - 1.5) < 0.003
+    assert crown.curvature < 0 and abs(crown.height - 1.5) < 0.003
+    assert abs(peak + crown.lift(peak) - 1.5) < 0.003  # the lift is taken
     # a flat roof 1.4 m up and a cable below it: the peak is kept or barely moved
     fu = rng.uniform(-2.0, 2.0, 10_000)
     fv = np.r_[np.full(10_000, 1.4), np.full(600, 1.2)] + rng.normal(0, 0.02, 10_600)
@@ -421,4 +423,9 @@ def test_crown_height_lifts_an_arch_peak_to_its_crown_and_leaves_a_flat_roof() -
     fv_all = np.r_[fv, np.full(4_000, -1.0) + rng.normal(0, 0.02, 4_000)]
     fu_all = np.r_[fu, rng.uniform(-2.0, 2.0, 4_000)]
     flat_peak = roof_floor_lines(fv_all).roof
-    assert abs(crown_height(fu_all, fv_all, flat_peak, 0.0, 2.0) - 1.4) < 0.004
+    flat = crown_height(fu_all, fv_all, flat_peak, 0.0, 2.0)
+    assert abs(flat.height - 1.4) < 0.004
+    assert abs(flat_peak + flat.lift(flat_peak) - 1.4) < 0.004
+    # a crown below the peak, or a parabola opening upwards, lifts nothing
+    assert Crown(1.38, -0.01, 0.02).lift(1.40) == 0.0
+    assert Crown(1.45, 0.01, 0.02).lift(1.40) == 0.0

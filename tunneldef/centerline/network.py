@@ -47,6 +47,7 @@ from .extract import (
     analyse_slice,
     record_lines,
     rejection_summary,
+    smooth_roof_lifts,
 )
 from .fit import fit_centerline
 from .plan import PlanGrid, plan_grid
@@ -193,6 +194,7 @@ def _slice_edge(
             rec.reason = ""
         rec.width, rec.height = rec.left - rec.right, rec.roof - rec.floor
         rec.ok = True
+    smooth_roof_lifts(records, c.neighbour_window)
     _reject_jumps(records, c)
     ok = [r for r in records if r.ok]
     if ok:

@@ -30,6 +30,7 @@ __all__ = [
     "roof_floor_lines",
     "kernel_density_1d",
     "refine_peak",
+    "Crown",
     "crown_height",
     "estimate_roll",
 ]
@@ -55,6 +56,8 @@ class RoofFloor:
         Heights of all density peaks.
     shares : ndarray, shape (P,)
         Share of the slice's points within one window of each peak.
+    crown : Crown or None
+        The trimmed parabola through the roof points (:func:`crown_height`), when fitted.
     """
 
     floor: float
@@ -65,6 +68,7 @@ class RoofFloor:
     density: np.ndarray
     peaks: np.ndarray
     shares: np.ndarray
+    crown: Crown | None = None
 
     @property
     def ok(self) -> bool:
@@ -175,6 +179,36 @@ def roof_floor_lines(
     return RoofFloor(floor, roof, KDE_PEAK, "", grid, dens, peaks, shares)
 
 
+@dataclass(frozen=True)
+class Crown:
+    """A trimmed parabola ``v = a + b u + c u^2`` through a slice's roof points
+    (:func:`crown_height`).
+
+    Attributes
+    ----------
+    height : float
+        The parabola at the section's middle, metres (NaN when too few points).
+    curvature : float
+        ``c``, 1/m (negative: the roof curves down towards the walls).
+    sigma : float
+        Robust sigma of the points about the parabola, metres.
+    """
+
+    height: float
+    curvature: float
+    sigma: float
+
+    def lift(self, peak: float) -> float:
+        """How far to raise a roof density ``peak`` to this crown: only what the peak gets
+        wrong is corrected. On a roof curving down to the walls the peak lies below the
+        crown, by less than the points' own scatter about it; a crown above the peak by
+        more, below it, or a parabola opening upwards (ledges, clutter, a roof that is no
+        single curve: the real Freiberg drift) gives 0."""
+        d = self.height - peak
+        ok = self.curvature < 0 and 0.0 < d <= 3.0 * max(self.sigma, 0.005)
+        return float(d) if ok else 0.0
+
+
 def crown_height(
     lateral: np.ndarray,
     vertical: np.ndarray,
@@ -185,8 +219,8 @@ def crown_height(
     window: float = 0.25,
     iterations: int = 5,
     min_points: int = 30,
-) -> float:
-    """Height of the roof above the section's middle, unbiased on a curved roof.
+) -> Crown:
+    """The crown of a slice's roof, unbiased on a curved roof.
 
     The kernel density peak of the heights (paper §3.1.2) marks a flat roof exactly, but on an
     arch the heights crowd towards the crown (density ~ 1/sqrt(crown - v)); smoothed by noise
@@ -195,7 +229,7 @@ def crown_height(
     fitted by least squares to the points near the peak across the middle of the section and
     trimmed to its own residuals (2.5 robust sigmas), and read at the middle: on an arch the
     crown, on a flat roof about the peak; clutter below the roof falls outside the trimmed
-    band. Only a lift of the peak towards a crown is taken (see Returns).
+    band. :meth:`Crown.lift` says how much of it to take.
 
     Parameters
     ----------
@@ -210,33 +244,26 @@ def crown_height(
 
     Returns
     -------
-    float
-        The roof height at ``centre``; ``roof`` unchanged when fewer than ``min_points``
-        points support the fit, the parabola opens upwards, or it lies below the peak or
-        above it by more than three of its residual sigmas.
+    Crown
+        NaN figures when fewer than ``min_points`` points support the fit.
     """
+    none = Crown(np.nan, np.nan, np.nan)
     u = np.asarray(lateral, dtype=np.float64) - centre
     v = np.asarray(vertical, dtype=np.float64)
     near = (np.abs(u) < 0.6 * half_width) & (np.abs(v - roof) < window)
     u, v = u[near], v[near]
     if u.size < min_points:
-        return float(roof)
+        return none
     keep = np.ones(u.size, dtype=bool)
-    coef = None
+    coef, sigma = None, np.nan
     for _ in range(iterations):
         if keep.sum() < min_points:
-            return float(roof)
+            return none
         coef = np.polyfit(u[keep], v[keep], 2)
         res = v - np.polyval(coef, u)
         sigma = 1.4826 * float(np.median(np.abs(res[keep])))
         keep = np.abs(res) < max(2.5 * sigma, 0.01)
-    crown = float(np.polyval(coef, 0.0))
-    # only what the density peak gets wrong is corrected: on a roof curving down to the
-    # walls the peak lies below the crown, by less than the points' own scatter about it; a
-    # fit above the peak by more, below it, or opening upwards (ledges, clutter, a roof that
-    # is no single curve: the real Freiberg drift) keeps the peak
-    lifted = 0.0 < crown - roof <= 3.0 * max(sigma, 0.005)
-    return crown if coef[0] < 0 and lifted else float(roof)
+    return Crown(float(np.polyval(coef, 0.0)), float(coef[0]), float(sigma))
 
 
 def estimate_roll(
