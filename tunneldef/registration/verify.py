@@ -14,6 +14,9 @@ with it:
   the point-to-plane slide (:func:`.axial.fine_shift`, with its standard deviation) must both
   find no further shift, and agree with each other within their uncertainties. A slide along a
   featureless prism passes the first test and fails this one (or shows as undetermined).
+* **convergence.** The same slide started 2 cm before and after the registered position must
+  end where it ends from the position itself: on noisy normals the slide sticks where it
+  starts, and then reads no remaining slide wherever the registration stopped.
 """
 
 from __future__ import annotations
