@@ -384,7 +384,14 @@ def smooth_roof_lifts(records: list[SliceRecord], window: float) -> None:
 
 def _reject_jumps(records: list[SliceRecord], c: CenterlineConfig) -> None:
     """Reject slices whose width or height jumps against their neighbours (within
-    ``neighbour_window``): width against the 30th percentile, height against the median."""
+    ``neighbour_window``): width against the 30th percentile, height against the median.
+
+    A slice narrower than its neighbours' median width by more than ``narrow_sigmas`` robust
+    spreads of the widths (1.4826 MAD of each width against its neighbours' median) is rejected
+    too: walls do not move in and out by a few centimetres from one slice to the next, but the
+    line read on a pipe or a conveyor where a hole or an obstruction hides the wall does, and
+    it pulls the centre by half the difference. The rejected slice is bridged by the curve.
+    """
     ok = [r for r in records if r.ok]
     if len(ok) < 3:
         return
@@ -408,6 +415,28 @@ def _reject_jumps(records: list[SliceRecord], c: CenterlineConfig) -> None:
             r.ok, r.reason = (
                 False,
                 (f"inconsistent floor/roof: height {r.height:.2f} m vs {mh:.2f} m nearby"),
+            )
+    _reject_narrow(records, c)
+
+
+def _reject_narrow(records: list[SliceRecord], c: CenterlineConfig, min_slices: int = 10) -> None:
+    """Reject slices narrower than their neighbours' median width by more than
+    ``narrow_sigmas`` robust spreads (1.4826 MAD of the widths against those medians), among
+    the slices the jump rules kept; with fewer than ``min_slices`` the spread is not known."""
+    ok = [r for r in records if r.ok]
+    if c.narrow_sigmas <= 0 or len(ok) < min_slices:
+        return
+    st = np.array([r.station for r in ok])
+    wid = np.array([r.width for r in ok])
+    med = np.array([np.median(wid[np.abs(st - s) <= c.neighbour_window]) for s in st])
+    spread = 1.4826 * float(np.median(np.abs(wid - med)))
+    limit = min(c.max_width_jump, c.narrow_sigmas * spread)
+    for r, m in zip(ok, med, strict=True):
+        if m - r.width > limit:
+            r.ok, r.reason = (
+                False,
+                f"narrower than nearby: width {r.width:.3f} m vs {m:.3f} m "
+                "(a wall hidden, or read on equipment)",
             )
 
 
