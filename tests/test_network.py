@@ -159,6 +159,24 @@ def test_real_junction_scan() -> None:
 
 
 @pytest.mark.slow
+def test_a_single_tube_run_refuses_a_network_at_once(pair, tmp_path, capsys) -> None:  # noqa: ANN001
+    """`detect` without --network on a drift network stops before any centreline (a second or
+    two here), naming the drifts and junctions it saw and what to run instead."""
+    from tunneldef.centerline.skeleton import plan_topology
+    from tunneldef.cli import main
+    from tunneldef.synth.sampling import write_epochs
+
+    topo = plan_topology(pair.ref.xyz)
+    assert topo.junctions == 2 and len(topo.lengths) == 3
+    assert topo.lengths[0] > 30.0  # the 40 m main drift, through its crossing
+    paths = write_epochs(pair.ref, pair.cmp, tmp_path, "ply")
+    out = tmp_path / "out.ply"
+    code = main(["detect", str(paths["ref"]), str(paths["cmp"]), "-o", str(out), "--quiet"])
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert code == 2 and not out.exists()
+    assert "reference_epoch.junctions 2 > limit 0" in line and "--network" in line
+
+
 def test_detect_network_measures_each_branch() -> None:
     from tunneldef.pipeline import detect_network
     from tunneldef.synth import DeformationSpec

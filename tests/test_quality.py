@@ -250,6 +250,8 @@ def test_detect_refuses_on_a_failed_check_and_force_writes_unverified(
     # (past a slide of metres the epochs' cylinders mostly cover different stretches and read
     # NaN, so the strict deformation limit need not fail as well: it must be evaluated)
     names = [c["check"] for c in q["checks"]]
+    assert by_name(q, "reference_epoch.junctions")["figure"] == 0  # one drift
+    assert by_name(q, "compared_epoch.junctions")["verdict"] == "pass"
     for name in ("reference_centreline.usable_slices", "registration.fit_excess",
                  "registration.axial_agreement", "registration.centreline_difference",
                  "registration.axial_pose",
@@ -260,6 +262,10 @@ def test_detect_refuses_on_a_failed_check_and_force_writes_unverified(
     assert by["registration.axial_residual"]["figure"] > 0.05
     res = read(out)
     assert any("UNVERIFIED" in c for c in res.meta["ply"]["comments"])
+
+
+def by_name(quality: dict, name: str) -> dict:
+    return next(c for c in quality["checks"] if c["check"] == name)
 
 
 def test_las_header_says_unverified(tmp_path: Path) -> None:

@@ -289,6 +289,9 @@ class QualityConfig:
     max_pose_mismatch: float = _p(1.0, "ours: the section images at the registered position "
                                        "may match worse than at the best shift by at most "
                                        "their noise (coarse_shift's own tolerance)")
+    max_junctions: int = _p(0, "ours: a single-tube run refuses an epoch whose plan skeleton "
+                               "has junctions (a drift network: its cross-cuts would be "
+                               "measured against the main drift's centreline; use --network)")
     max_significant_share: float = _p(0.25, "ours: share of shell points beyond their LoD95 "
                                             "(robust estimator); about 5 % by chance plus the "
                                             "truly deformed shell, far more after a wrong "

@@ -33,6 +33,7 @@ from .quality import (
     centerline_checks,
     deformation_checks,
     registration_checks,
+    topology_checks,
 )
 
 __all__ = ["detect", "detect_network", "register_epochs", "check_epochs", "Result",
@@ -94,11 +95,19 @@ def register_epochs(
         ``registration.transform`` maps compared coordinates into the reference frame.
     """
     from .centerline import extract_centerline
+    from .centerline.skeleton import plan_topology
     from .registration import register
 
     config = config or Config()
     check_epochs(ref, cmp)
     report = QualityReport(enforced=config.quality.enforce)
+    # first, is each epoch one drift? (a network's cross-cuts are no sections of one tube)
+    notify(progress, "plan topology", 0.0)
+    for name, cloud in (("reference", ref), ("compared", cmp)):
+        topo = plan_topology(cloud.xyz, config.network)
+        log.info("%s epoch: %s", name, topo.describe())
+        report.add(topology_checks(topo, config.quality, name))
+    notify(progress, "plan topology", 1.0)
     lines = {"slicing": config.slicing, "settings": config.centerline}
     ref_ex = extract_centerline(ref.xyz, **lines, progress=under(progress, "reference centreline"))
     report.add(centerline_checks(ref_ex, config.quality, "reference"))

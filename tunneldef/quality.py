@@ -24,6 +24,7 @@ __all__ = [
     "QualityReport",
     "QualityError",
     "UNVERIFIED",
+    "topology_checks",
     "centerline_checks",
     "registration_checks",
     "deformation_checks",
@@ -164,6 +165,20 @@ class QualityReport:
             "failed": [c.name for c in self.failed],
             "checks": [c.to_dict() for c in self.checks],
         }
+
+
+def topology_checks(topology: Any, qc: QualityConfig, epoch: str) -> list[Check]:
+    """Is the epoch one drift? Junctions in its plan skeleton (a
+    :class:`~tunneldef.centerline.skeleton.PlanTopology`) mean a drift network, which a
+    single-tube run would measure against one centreline (NaN, passing, when the plan could
+    not be read)."""
+    figure = np.nan if topology.reason else float(topology.junctions)
+    return [
+        _check(f"{epoch}_epoch.junctions", figure, qc.max_junctions, "<=", "",
+               f"the {epoch} epoch is a drift network: {topology.describe()}; run "
+               "`tunneldef detect --network`",
+               f"junctions of the plan footprint's skeleton: {topology.describe()}"),
+    ]
 
 
 def centerline_checks(extraction: Any, qc: QualityConfig, epoch: str) -> list[Check]:
