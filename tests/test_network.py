@@ -204,12 +204,40 @@ def test_detect_network_measures_each_branch() -> None:
     assert {b["branch"] for b in s["branches"]} == {0, 1, 2}
     assert all(b["common_length_m"] > 0.6 * b["length_m"] for b in s["branches"])
     assert all("branch" in x for x in s["sections"])
-    # no per-edge self-checks yet: the result says it is unverified, in the summary and files
-    assert s["quality"]["verified"] is False and "UNVERIFIED" in s["quality"]["status"]
-    assert "UNVERIFIED" in r.cloud.meta["note"]
+    # every edge's centreline in both epochs, the registration and every edge's deformation
+    # are checked, and here all pass
+    q = s["quality"]
+    names = {c["check"] for c in q["checks"]}
+    for k in (0, 1, 2):
+        assert f"reference_network.edge{k}.curve_uncertainty" in names
+        assert f"deformation.edge{k}.significant_share" in names
+    assert {"registration.fit_excess", "registration.translation_residual",
+            "registration.translation_convergence"} <= names
+    assert q["verified"] is True, q["failed"]
+    assert "note" not in r.cloud.meta
+    assert s["registration_check"]["spread"] < 0.005  # the cross-cuts fix the plan position
 
 
-@pytest.mark.slow
+def test_network_registration_check_sees_an_offset(pair) -> None:  # noqa: ANN001
+    """The independent check of a network registration: at the true pose nothing is left to
+    move and every start ends in one place; 3 cm off along the main drift (where a single
+    straight drift would have nothing to hold on to) the cross-cuts' walls find the offset."""
+    from tunneldef.config import QualityConfig
+    from tunneldef.quality import network_registration_checks
+    from tunneldef.registration.verify import verify_network
+    from tunneldef.transforms import apply_transform
+
+    moved = apply_transform(pair.truth.transform, pair.cmp.xyz)
+    length = float(sum(cl.length for cl in pair.truth.centerlines))
+    good = verify_network(pair.ref.xyz, moved, length)
+    assert np.linalg.norm(good.remaining) < 0.003 and good.spread < 0.005
+    assert all(c.passed for c in network_registration_checks(good, QualityConfig()))
+    off = verify_network(pair.ref.xyz, moved + np.array([0.03, 0.0, 0.0]), length)
+    assert off.remaining[0] == pytest.approx(-0.03, abs=0.004)
+    failed = [c.name for c in network_registration_checks(off, QualityConfig()) if not c.passed]
+    assert "registration.translation_residual" in failed
+
+
 @pytest.mark.slow
 def test_drift_correction_lowers_the_residual_and_keeps_a_small_sag() -> None:
     from tunneldef.registration.network import correct_drift, register_networks

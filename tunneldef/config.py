@@ -114,10 +114,11 @@ class CenterlineConfig:
     max_width_jump: float = _p(0.3, "ours: a slice wider than its neighbours' 30th percentile "
                                     "width by more than this is a chamber/niche/junction and is "
                                     "rejected (narrower: inconsistent walls), m")
-    narrow_sigmas: float = _p(4.0, "ours: a slice narrower than its neighbours' median width "
-                                   "by more than this many robust spreads of the widths is "
-                                   "rejected (a wall hidden by pipes or a conveyor, or read on "
-                                   "them); 0 = off")
+    narrow_sigmas: float = _p(4.0, "ours: a slice narrower than its neighbours' median width, "
+                                   "or higher or lower than their median height, by more than "
+                                   "this many robust spreads of those values is rejected (a "
+                                   "wall read on pipes where a hole hides it; a sparse arch's "
+                                   "roof peak on its shoulder); 0 = off")
     max_height_jump: float = _p(0.3, "ours: same against the neighbours' median height "
                                      "(missing floor/roof), m")
     neighbour_window: float = _p(10.0, "ours: neighbours within +-10 m of a slice, m")

@@ -12,6 +12,7 @@ the checks and the result objects they return.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -27,11 +28,12 @@ from .errors import EpochMismatchError, RegistrationError
 from .frame import principal_frame
 from .progress import ProgressCallback, notify, under
 from .quality import (
-    NETWORK_UNCHECKED,
     UNVERIFIED,
     QualityReport,
     centerline_checks,
     deformation_checks,
+    edge_checks,
+    network_registration_checks,
     registration_checks,
     topology_checks,
 )
@@ -374,6 +376,11 @@ class NetworkResult:
         Whether the piecewise-rigid SLAM-drift correction was used, its residuals and blocks
         (:func:`~tunneldef.registration.network.correct_drift`); the compared points in
         ``cloud`` carry it, ``transform`` is the rigid part only.
+    quality : QualityReport
+        Every self-check: each edge's centreline in both epochs, the registration
+        (:func:`~tunneldef.registration.verify.verify_network`), each edge's deformation.
+    registration_check : NetworkCheck or None
+        The registration's independent figures.
     """
 
     cloud: Cloud
@@ -388,10 +395,13 @@ class NetworkResult:
     config: Config
     timings: dict[str, float] = field(default_factory=dict)
     drift_correction: dict[str, Any] = field(default_factory=dict)
+    quality: QualityReport = field(default_factory=QualityReport)
+    registration_check: Any = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-serialisable summary: transform, both networks, per-edge names, lengths and
-        common lengths, sections and danger zones keyed by branch and chainage, parameters."""
+        common lengths, sections and danger zones keyed by branch and chainage, the quality
+        block, parameters."""
         d = np.asarray(self.cloud.fields["deformation"], dtype=np.float64)
         shell = np.asarray(self.cloud.fields["shell"], dtype=bool)
         branch = np.asarray(self.cloud.fields["branch"])
@@ -410,7 +420,9 @@ class NetworkResult:
             "transform_compared_to_reference": np.asarray(self.transform).tolist(),
             "registration": self.registration.to_dict(),
             "drift_correction": self.drift_correction,
-            "quality": {"verified": False, "status": NETWORK_UNCHECKED},
+            "registration_check": (self.registration_check.to_dict()
+                                   if self.registration_check is not None else None),
+            "quality": self.quality.to_dict(),
             "branches": edges,
             "danger_threshold_m": self.danger_threshold,
             "danger_zones": self.zones,
@@ -442,7 +454,7 @@ def detect_network(
         As :func:`detect`; :class:`~tunneldef.errors.NetworkError` for a network the method
         cannot vouch for.
     """
-    from .centerline.network import extract_network
+    from .centerline.network import JUNCTION, extract_network
     from .deformation import (
         compute_deformation,
         danger_threshold,
@@ -451,15 +463,22 @@ def detect_network(
     )
     from .network import NO_BRANCH
     from .registration.network import common_lengths, correct_drift, register_networks
+    from .registration.verify import verify_network
 
     config = config or Config()
+    qc = config.quality
+    report = QualityReport(enforced=qc.enforce)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     check_epochs(ref, cmp)
     lines = {"slicing": config.slicing, "settings": config.centerline,
              "network": config.network}
     ref_net = extract_network(ref.xyz, **lines, progress=under(progress, "reference network"))
+    for e in ref_net.network.edges:
+        report.add(edge_checks(e, qc, "reference", JUNCTION))
     cmp_net = extract_network(cmp.xyz, **lines, progress=under(progress, "compared network"))
+    for e in cmp_net.network.edges:
+        report.add(edge_checks(e, qc, "compared", JUNCTION))
     timings["centrelines"] = time.perf_counter() - t0
     t = time.perf_counter()
     reg = register_networks(ref.xyz, cmp.xyz, ref_net.network, cmp_net.network)
@@ -471,6 +490,12 @@ def detect_network(
         xyz, drift = correct_drift(ref.xyz, moved.xyz, net, block=config.network.drift_block)
         drift["enabled"] = True
         moved = Cloud(xyz, moved.fields, moved.meta)
+    notify(progress, "registration check", 0.0)
+    check = verify_network(ref.xyz, moved.xyz, net.length,
+                           points_per_metre=config.registration.max_points_per_metre)
+    notify(progress, "registration check", 1.0)
+    report.add(network_registration_checks(check, qc))
+    reg_sigma = float(check.excess) if np.isfinite(check.excess) else 0.0
     timings["registration"] = time.perf_counter() - t
     t = time.perf_counter()
     reach = 2.0 * max(float(ref_net.grid.half_width.max()), 1.0)
@@ -492,7 +517,10 @@ def detect_network(
         notify(progress, "deformation", e.id / len(net.edges))
         proj = e.centerline.project(moved.xyz[mc])
         d = compute_deformation(ref.xyz[mr], moved.xyz[mc], e.centerline,
-                                settings=config.deformation, projection=proj)
+                                settings=config.deformation, projection=proj,
+                                registration_sigma=reg_sigma)
+        report.add([dataclasses.replace(c, name=c.name.replace(".", f".edge{e.id}.", 1))
+                    for c in deformation_checks(d, qc)])
         results.append((e, mc, d))
         branch[mc] = e.id
         for k, v in d.fields().items():
@@ -527,12 +555,12 @@ def detect_network(
     out["danger"] = danger
     out["branch"] = branch
     moved.add_fields(out)
-    # the per-edge self-checks of the single-drift path do not exist for networks yet: the
-    # outputs say so in words rather than pass for verified
-    moved.meta["note"] = NETWORK_UNCHECKED
-    log.warning("%s", NETWORK_UNCHECKED)
+    if not report.verified:
+        moved.meta["note"] = UNVERIFIED
+        log.warning("%s: %s", UNVERIFIED, "; ".join(c.reason() for c in report.failed))
     common = common_lengths(net, ref.xyz, moved.xyz)
     timings["sections_and_danger"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
     return NetworkResult(moved, transform, reg, net, cmp_net.network.transformed(transform),
-                         sections, zones, threshold, common, config, timings, drift)
+                         sections, zones, threshold, common, config, timings, drift, report,
+                         check)

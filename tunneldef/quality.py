@@ -28,12 +28,12 @@ __all__ = [
     "centerline_checks",
     "registration_checks",
     "deformation_checks",
+    "edge_checks",
+    "network_registration_checks",
 ]
 
 #: The words every output of a run whose checks failed carries (summary, file headers).
 UNVERIFIED = "UNVERIFIED: quality checks failed, result written on request"
-#: What a drift-network result says of itself: its stages have no self-checks yet.
-NETWORK_UNCHECKED = "UNVERIFIED: drift-network results are not quality-checked yet"
 
 
 class QualityError(TunnelDefError):
@@ -280,4 +280,55 @@ def deformation_checks(deformation: Any, qc: QualityConfig) -> list[Check]:
         _check("deformation.significant_share", share, qc.max_significant_share, "<=", "",
                "far more of the shell changed than deformation explains: the registration "
                "is probably wrong", "share of shell points whose |deformation| exceeds LoD95"),
+    ]
+
+
+def edge_checks(edge: Any, qc: QualityConfig, epoch: str, junction: str) -> list[Check]:
+    """Checks of one edge of a centreline network (a
+    :class:`~tunneldef.network.NetworkEdge`): the share of its slices outside junction zones
+    that show a tunnel section, and the scatter of their centres about the curve. A short
+    branch (too few sections for a curve: the axis moved onto its centres) gets only the
+    first."""
+    name = f"{epoch}_network.edge{edge.id}"
+    records = [r for r in edge.slices if r.reason != junction]
+    ok = [r for r in records if r.ok]
+    share = len(ok) / len(records) if records else np.nan
+    advice = (f"edge {edge.id} of the {epoch} network ({edge.length:.1f} m) is unreliable; "
+              "raise [network] min_branch_length to leave short branches out, or try "
+              "[slicing] thickness/step")
+    out = [_check(f"{name}.usable_slices", share, qc.min_usable_share, ">=", "", advice,
+                  f"share of the {len(records)} slices outside junction zones with floor, "
+                  "roof and two walls")]
+    if not edge.centerline.meta.get("short_branch") and ok:
+        res = edge.centerline.project(np.array([r.centre for r in ok])).distance
+        out.append(_check(f"{name}.curve_uncertainty", float(np.percentile(res, 95)),
+                          qc.max_curve_uncertainty, "<=", "m", advice,
+                          f"95th percentile distance of the {len(ok)} used slice centres "
+                          "from the curve"))
+    return out
+
+
+def network_registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
+    """Checks of a network registration from its independent figures (a
+    :class:`~tunneldef.registration.verify.NetworkCheck`)."""
+    rem = float(np.linalg.norm(check.remaining)) if np.all(np.isfinite(check.remaining)) \
+        else np.inf
+    return [
+        _check("registration.fit_excess", check.excess, qc.max_fit_excess, "<=", "m",
+               "the compared network does not lie on the reference as closely as the scans' "
+               "noise allows; check that both epochs show the same drifts",
+               f"cross-epoch point-to-plane sigma {check.cross_residual:.4f} m vs the epochs' "
+               f"own {check.ref_residual:.4f} / {check.cmp_residual:.4f} m"),
+        _check("registration.translation_residual", rem, qc.max_axial_residual, "<=", "m",
+               "an independent point-to-plane fit finds the compared network off its "
+               "registered position; the registration did not converge",
+               "length of the translation a robust point-to-plane fit still finds "
+               f"({', '.join(f'{1000 * v:+.1f}' for v in check.remaining)} mm)"),
+        _check("registration.translation_convergence", check.spread, qc.max_axial_spread,
+               "<=", "m",
+               "started 2 cm off along x or y, the point-to-plane fit ends elsewhere: the "
+               "common part of the networks does not fix their position against the noise "
+               "(one drift direction only, or too sparse and noisy)",
+               "largest distance between where the fit ends from the registered pose and "
+               "from 2 cm off along +-x and +-y"),
     ]

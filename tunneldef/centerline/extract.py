@@ -386,11 +386,8 @@ def _reject_jumps(records: list[SliceRecord], c: CenterlineConfig) -> None:
     """Reject slices whose width or height jumps against their neighbours (within
     ``neighbour_window``): width against the 30th percentile, height against the median.
 
-    A slice narrower than its neighbours' median width by more than ``narrow_sigmas`` robust
-    spreads of the widths (1.4826 MAD of each width against its neighbours' median) is rejected
-    too: walls do not move in and out by a few centimetres from one slice to the next, but the
-    line read on a pipe or a conveyor where a hole or an obstruction hides the wall does, and
-    it pulls the centre by half the difference. The rejected slice is bridged by the curve.
+    Then the finer, noise-scaled rule of :func:`_reject_narrow`. Rejected slices are bridged
+    by the curve.
     """
     ok = [r for r in records if r.ok]
     if len(ok) < 3:
@@ -420,24 +417,37 @@ def _reject_jumps(records: list[SliceRecord], c: CenterlineConfig) -> None:
 
 
 def _reject_narrow(records: list[SliceRecord], c: CenterlineConfig, min_slices: int = 10) -> None:
-    """Reject slices narrower than their neighbours' median width by more than
-    ``narrow_sigmas`` robust spreads (1.4826 MAD of the widths against those medians), among
-    the slices the jump rules kept; with fewer than ``min_slices`` the spread is not known."""
+    """Among the slices the jump rules kept, reject those narrower than their neighbours'
+    median width, or higher or lower than their median height, by more than
+    ``narrow_sigmas`` robust spreads (1.4826 MAD of the values against those medians); with
+    fewer than ``min_slices`` the spreads are not known.
+
+    Walls and roof do not move in and out by centimetres from one slice to the next, but a
+    wall read on pipes where a hole hides it does, and so does a sparse arch's roof peak that
+    lands on its shoulder: either moves the centre by half the difference.
+    """
     ok = [r for r in records if r.ok]
     if c.narrow_sigmas <= 0 or len(ok) < min_slices:
         return
     st = np.array([r.station for r in ok])
-    wid = np.array([r.width for r in ok])
-    med = np.array([np.median(wid[np.abs(st - s) <= c.neighbour_window]) for s in st])
-    spread = 1.4826 * float(np.median(np.abs(wid - med)))
-    limit = min(c.max_width_jump, c.narrow_sigmas * spread)
-    for r, m in zip(ok, med, strict=True):
-        if m - r.width > limit:
-            r.ok, r.reason = (
-                False,
-                f"narrower than nearby: width {r.width:.3f} m vs {m:.3f} m "
-                "(a wall hidden, or read on equipment)",
-            )
+    near = np.abs(st[:, None] - st[None, :]) <= c.neighbour_window
+    verdicts = []
+    for key, sided in (("width", True), ("height", False)):
+        v = np.array([getattr(r, key) for r in ok])
+        med = np.array([np.median(v[m]) for m in near])
+        spread = 1.4826 * float(np.median(np.abs(v - med)))
+        limit = min(c.max_width_jump if sided else c.max_height_jump, c.narrow_sigmas * spread)
+        off = (med - v) if sided else np.abs(v - med)
+        verdicts.append((key, v, med, off > limit))
+    for i, r in enumerate(ok):
+        for key, v, med, bad in verdicts:
+            if bad[i]:
+                what = "narrower than" if key == "width" else "height unlike"
+                cause = ("a wall hidden, or read on equipment" if key == "width"
+                         else "roof or floor read off the surface")
+                r.ok, r.reason = (
+                    False, f"{what} nearby: {key} {v[i]:.3f} m vs {med[i]:.3f} m ({cause})")
+                break
 
 
 def _centres(records: list[SliceRecord], to_world: Callable[[np.ndarray], np.ndarray]) -> None:

@@ -17,6 +17,15 @@ with it:
 * **convergence.** The same slide started 2 cm before and after the registered position must
   end where it ends from the position itself: on noisy normals the slide sticks where it
   starts, and then reads no remaining slide wherever the registration stopped.
+
+A drift network (:func:`verify_network`) has no one axis to slide along: its cross-cuts fix
+the position in plan where a single drift cannot. There the fit is judged as above, and the
+position by a three-degree-of-freedom point-to-plane translation from the registered pose and
+from 2 cm beside it along x and y: it must find nothing left to move, and end in one place
+from every start.
+
+One idea at this length: the independent check of a finished registration, of a drift and of
+a network.
 """
 
 from __future__ import annotations
@@ -34,7 +43,7 @@ from ..transforms import apply_transform
 from .axial import _mismatch, coarse_shift, section_image
 from .views import axial_correction, normals
 
-__all__ = ["RegistrationCheck", "verify_registration"]
+__all__ = ["RegistrationCheck", "verify_registration", "NetworkCheck", "verify_network"]
 
 _SAMPLE = 25_000  # least points per epoch and half the plane fits use
 _IMAGE_SAMPLE = 200_000  # least points per epoch of the section images (as the registration)
@@ -131,6 +140,26 @@ def _plane_sigma(src: np.ndarray, dst: np.ndarray, dst_n: np.ndarray, tree: cKDT
     return float(1.4826 * np.median(np.abs(r - np.median(r))))
 
 
+def _fit_figures(ref: np.ndarray, cmp: np.ndarray) -> tuple[float, float, float, float, float]:
+    """Cross-epoch and within-epoch robust point-to-plane sigmas of two registered subsets:
+    (cross, own_ref, own_cmp, ratio, excess), see :class:`RegistrationCheck`."""
+    ref_a, ref_b = ref[0::2], ref[1::2]
+    cmp_a, cmp_b = cmp[0::2], cmp[1::2]
+    ref_bn = normals(ref_b, _NORMAL_RADIUS)
+    ref_tree = cKDTree(ref_b)
+    cross = _plane_sigma(cmp_a, ref_b, ref_bn, ref_tree)
+    own_ref = _plane_sigma(ref_a, ref_b, ref_bn, ref_tree)
+    own_cmp = (
+        _plane_sigma(cmp_a, cmp_b, normals(cmp_b, _NORMAL_RADIUS), cKDTree(cmp_b))
+        if len(cmp_b) >= 100
+        else np.inf
+    )
+    own = max(own_ref, own_cmp)
+    ratio = cross / own if own > 0 and np.isfinite(own) else np.inf
+    excess = float(np.sqrt(max(cross**2 - own**2, 0.0))) if np.isfinite(ratio) else np.inf
+    return cross, own_ref, own_cmp, float(ratio), excess
+
+
 def verify_registration(
     ref_xyz: np.ndarray,
     cmp_xyz: np.ndarray,
@@ -191,20 +220,7 @@ def verify_registration(
     mp = _head(ma, n_image)  # the compared section image's points
     ref = ref_all[:n_plane]
     cmp = cmp_all[inside_all][:n_plane]
-    ref_a, ref_b = ref[0::2], ref[1::2]
-    cmp_a, cmp_b = cmp[0::2], cmp[1::2]
-    ref_bn = normals(ref_b, _NORMAL_RADIUS)
-    ref_tree = cKDTree(ref_b)
-    cross = _plane_sigma(cmp_a, ref_b, ref_bn, ref_tree)
-    own_ref = _plane_sigma(ref_a, ref_b, ref_bn, ref_tree)
-    own_cmp = (
-        _plane_sigma(cmp_a, cmp_b, normals(cmp_b, _NORMAL_RADIUS), cKDTree(cmp_b))
-        if len(cmp_b) >= 100
-        else np.inf
-    )
-    own = max(own_ref, own_cmp)
-    ratio = cross / own if own > 0 and np.isfinite(own) else np.inf
-    excess = float(np.sqrt(max(cross**2 - own**2, 0.0))) if np.isfinite(ratio) else np.inf
+    cross, own_ref, own_cmp, ratio, excess = _fit_figures(ref, cmp)
 
     rp = cl.project(ref_big)
     # a quarter of the common stretch at most: beyond it a short overlap matches partial
@@ -323,3 +339,129 @@ def _shift_matrix(t: np.ndarray) -> np.ndarray:
     m = np.eye(4)
     m[:3, 3] = t
     return m
+
+
+# ---------------------------------------------------------------------------------------------
+# drift networks
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NetworkCheck:
+    """Independent figures of a network registration (metres).
+
+    Attributes
+    ----------
+    cross_residual, ref_residual, cmp_residual, residual_ratio, excess : float
+        As in :class:`RegistrationCheck`, over the whole network.
+    remaining : ndarray, shape (3,)
+        The translation a robust point-to-plane fit still finds from the registered pose.
+    probe_ends : ndarray, shape (4, 3)
+        Where that fit ends when started 2 cm off along +x, -x, +y and -y.
+    spread : float
+        Largest distance between any two of the five ends: 0 when the surfaces fix the
+        position in every direction (the fit is drawn back to one place from any side), up to
+        4 cm along a direction nothing fixes (the fit sticks where it starts).
+    """
+
+    cross_residual: float
+    ref_residual: float
+    cmp_residual: float
+    residual_ratio: float
+    excess: float
+    remaining: np.ndarray
+    probe_ends: np.ndarray
+    spread: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form (non-finite values become None)."""
+        def num(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {
+            "cross_residual": num(self.cross_residual), "ref_residual": num(self.ref_residual),
+            "cmp_residual": num(self.cmp_residual), "residual_ratio": num(self.residual_ratio),
+            "excess": num(self.excess),
+            "remaining": [num(v) for v in self.remaining],
+            "probe_ends": [[num(v) for v in row] for row in self.probe_ends],
+            "spread": num(self.spread),
+        }
+
+
+def translation_fit(
+    ref_xyz: np.ndarray,
+    ref_normals: np.ndarray,
+    cmp_xyz: np.ndarray,
+    *,
+    start: np.ndarray | None = None,
+    kernels: tuple[float, ...] = (0.2, 0.1, 0.05),
+    iterations: int = 12,
+    tree: cKDTree | None = None,
+) -> np.ndarray:
+    """Translation (3,) moving ``cmp_xyz`` onto the reference surface, by Gauss-Newton on
+    Tukey-weighted point-to-plane residuals with a narrowing kernel (as
+    :func:`.axial.fine_shift`, with three degrees of freedom instead of one), started at
+    ``start``; NaN when fewer than 100 points find the surface."""
+    tree = tree if tree is not None else cKDTree(ref_xyz)
+    t = np.zeros(3) if start is None else np.array(start, dtype=np.float64)
+    for kernel in kernels:
+        for _ in range(iterations):
+            p = cmp_xyz + t
+            d, j = tree.query(p, distance_upper_bound=1.5 * kernel, workers=-1)
+            ok = np.isfinite(d)
+            if ok.sum() < 100:
+                return np.full(3, np.nan)
+            n = ref_normals[j[ok]]
+            r = np.einsum("ij,ij->i", n, p[ok] - ref_xyz[j[ok]])
+            w = np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
+            a = (n * w[:, None]).T @ n
+            step = -np.linalg.lstsq(a + 1e-9 * np.eye(3), (n * w[:, None]).T @ r, rcond=None)[0]
+            size = float(np.linalg.norm(step))
+            if size > kernel / 2:
+                step *= kernel / 2 / size
+            t += step
+            if size < 1e-5:
+                break
+    return t
+
+
+def verify_network(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    length: float,
+    *,
+    points_per_metre: int = 1500,
+) -> NetworkCheck:
+    """Independent figures of a registered drift-network pair (see the module notes).
+
+    Parameters
+    ----------
+    ref_xyz, cmp_xyz : ndarray, shape (N, 3), (M, 3)
+        Reference points and the compared points in the reference frame (after any drift
+        correction), metres.
+    length : float
+        Total length of the reference network's edges, metres: with ``points_per_metre`` it
+        sets how many points the fits use (at least 50 000 per epoch).
+
+    Returns
+    -------
+    NetworkCheck
+    """
+    origin = np.asarray(ref_xyz[0], dtype=np.float64)
+    n_plane = max(2 * _SAMPLE, int(2 * points_per_metre * length))
+    ref = _shuffled_subset(np.asarray(ref_xyz) - origin, n_plane, 11)
+    cmp = _shuffled_subset(np.asarray(cmp_xyz), n_plane, 12) - origin
+    # only compared points with the reference surface within reach take part
+    tree = cKDTree(ref)
+    near = np.isfinite(tree.query(cmp, distance_upper_bound=0.3, workers=-1)[0])
+    cmp = cmp[near]
+    cross, own_ref, own_cmp, ratio, excess = _fit_figures(ref, cmp)
+    ref_n = normals(ref, _NORMAL_RADIUS)
+    sub = cmp[: max(60_000, int(points_per_metre * length))]
+    remaining = translation_fit(ref, ref_n, sub, tree=tree)
+    starts = _PROBE * np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])
+    ends = np.array([translation_fit(ref, ref_n, sub, start=s, tree=tree) for s in starts])
+    every = np.vstack([remaining[None], ends])
+    spread = (float(np.max(np.linalg.norm(every[:, None] - every[None], axis=2)))
+              if np.all(np.isfinite(every)) else np.inf)
+    return NetworkCheck(cross, own_ref, own_cmp, ratio, excess, remaining, ends, spread)
