@@ -9,8 +9,14 @@ through :func:`tunneldef.io.write`, ``truth.npz``) into ``DIR/d<density>/``.
 Detection scoring against the truth (per branch and per deformation) plugs in through
 :data:`SCORERS`: functions ``pair -> dict of name: value`` whose results are printed per pair.
 
+With ``--detect`` every pair is also run through :func:`tunneldef.pipeline.detect_network`
+(checks recorded, not enforced) and scored against the truth (:func:`score_detect`): the
+quality verdict and every failed check, time and peak RSS, the noise floor on the unchanged
+shell, and per deformation the branch it was measured on, how far the read peak lies from the
+true one and the core median read against the truth.
+
 Usage: ``python benchmarks/networks.py [--densities 300,1000] [--seed 0] [--out DIR]
-[--fmt laz|las|ply]``
+[--fmt laz|las|ply] [--detect]``
 
 Measured (one run, 2 cores shared with other work): 1.1 + 1.2 M points in 6-11 s at
 300 points/m^2, 3.8 + 3.9 M points in 13-31 s at 1000 points/m^2 with 0.9 GB of arrays at the
@@ -36,7 +42,8 @@ from tunneldef.synth.network import (
     write_network_pair,
 )
 
-#: Scorers run on every generated pair: ``pair -> {name: value}`` (none yet).
+#: Scorers run on every generated pair: ``pair -> {name: value}`` (``--detect`` adds
+#: :func:`score_detect`).
 SCORERS: list[Callable[[NetworkPair], dict[str, float]]] = []
 
 
@@ -58,6 +65,72 @@ def branch_table(pair: NetworkPair) -> str:
     strays = ["", "", "", f"{int(t.ref.stray.sum())}", "", "", "", f"{int(t.cmp.stray.sum())}"]
     rows.append("| strays | | | " + " | ".join(strays) + " |")
     return "\n".join(rows)
+
+
+def score_detect(pair: NetworkPair) -> dict[str, str]:
+    """``detect_network`` on the pair (checks recorded, not enforced), scored against the
+    truth; one line per figure.
+
+    * noise floor: |deformation| on compared shell points whose truth displacement is 0, more
+      than 2 m from any junction (mean / p95, mm) and the share beyond 10 mm;
+    * per deformation (its core: truth displacement beyond half the amplitude): the branch the
+      core was measured on (right when most of the compared points on that detected branch
+      belong to the deformation's truth branch), the distance between the centroid of the
+      points reading beyond half the amplitude within 6 m and the centroid of the true core
+      (m), and the core's median reading against its median truth.
+    """
+    from tunneldef.config import Config
+    from tunneldef.pipeline import detect_network
+
+    t = pair.truth
+    start = time.perf_counter()
+    r = detect_network(pair.ref, pair.cmp, Config().replace(quality={"enforce": False}))
+    took = time.perf_counter() - start
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    f = r.cloud.fields
+    dc = r.drift_correction
+    d = np.asarray(f["deformation"], dtype=np.float64)
+    branch = np.asarray(f["branch"])
+    ep = t.cmp
+    juncs = t.junction_positions
+    far = np.min(np.linalg.norm(ep.xyz_ref[:, None, :2] - juncs[None, :, :2], axis=2), axis=1)
+    stable = ep.shell & (ep.displacement == 0) & (far > 2.0 + 3.0) & np.isfinite(d)
+    out = {
+        "detect_network": f"{took:.1f} s, process peak RSS {rss:.2f} GB, "
+                          f"{'verified' if r.quality.verified else 'UNVERIFIED'}"
+                          + (f" (failed: {', '.join(c.name for c in r.quality.failed)})"
+                             if r.quality.failed else ""),
+        "noise floor on unchanged shell (>5 m from junctions)":
+            f"mean {1e3 * np.mean(np.abs(d[stable])):.2f} mm, p95 "
+            f"{1e3 * np.percentile(np.abs(d[stable]), 95):.2f} mm, beyond 10 mm "
+            f"{100 * np.mean(np.abs(d[stable]) > 0.01):.2f} %",
+        "drift correction": (f"used, residual {1e3 * dc['residual_rms_before_m']:.1f} -> "
+                             f"{1e3 * dc['residual_rms_after_m']:.1f} mm RMS"
+                             if dc.get("used") else "not used"),
+    }
+    for k, bd in enumerate(t.deformations):
+        amp = bd.deformation.amplitude
+        core = (ep.branch == bd.branch) & (ep.displacement < -0.5 * amp) & np.isfinite(d)
+        if core.sum() < 10:
+            out[f"deformation {k}"] = "core not scanned"
+            continue
+        ids, counts = np.unique(branch[core], return_counts=True)
+        got = int(ids[np.argmax(counts)])
+        on = branch == got
+        owners, oc = np.unique(ep.branch[on], return_counts=True)
+        right = int(owners[np.argmax(oc)]) == bd.branch
+        centre = ep.xyz_ref[core].mean(axis=0)
+        near = np.linalg.norm(ep.xyz_ref - centre, axis=1) < 6.0
+        read = near & (d < -0.5 * amp)
+        dist = (float(np.linalg.norm(ep.xyz_ref[read].mean(axis=0) - centre))
+                if read.sum() >= 10 else np.inf)
+        med_read, med_true = float(np.median(d[core])), float(np.median(ep.displacement[core]))
+        out[f"deformation {k} ({bd.deformation.kind} {1e3 * amp:.0f} mm, truth branch "
+            f"{bd.branch})"] = (
+            f"on detected branch {got} ({'right' if right else 'WRONG'} branch), peak "
+            f"{dist:.2f} m from the truth, core median {1e3 * med_read:.1f} mm vs "
+            f"{1e3 * med_true:.1f} mm ({100 * (med_read / med_true - 1):+.0f} %)")
+    return out
 
 
 def run(density: float, seed: int, out: Path | None, fmt: str) -> None:
@@ -97,7 +170,11 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None, help="write each pair into OUT/d<density>/")
     ap.add_argument("--fmt", default="laz", choices=["laz", "las", "ply"])
+    ap.add_argument("--detect", action="store_true",
+                    help="also run detect_network on each pair and score it against the truth")
     args = ap.parse_args()
+    if args.detect:
+        SCORERS.append(score_detect)
     for density in (float(d) for d in args.densities.split(",")):
         run(density, args.seed, args.out, args.fmt)
 
