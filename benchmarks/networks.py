@@ -73,11 +73,12 @@ def score_detect(pair: NetworkPair) -> dict[str, str]:
 
     * noise floor: |deformation| on compared shell points whose truth displacement is 0, more
       than 2 m from any junction (mean / p95, mm) and the share beyond 10 mm;
-    * per deformation (its core: truth displacement beyond half the amplitude): the branch the
-      core was measured on (right when most of the compared points on that detected branch
-      belong to the deformation's truth branch), the distance between the centroid of the
-      points reading beyond half the amplitude within 6 m and the centroid of the true core
-      (m), and the core's median reading against its median truth.
+    * per deformation (its core: truth displacement beyond half the amplitude, on its branch
+      and within its chainage span): the branch the
+      core was measured on (right when that edge's curve runs within 0.3 m of the truth
+      branch's axis there), the distance between the centroid of the
+      shell points (as classified) reading beyond half the amplitude within 6 m and the
+      centroid of the true core (m), and the core's median reading against its median truth.
     """
     from tunneldef.config import Config
     from tunneldef.pipeline import detect_network
@@ -89,6 +90,7 @@ def score_detect(pair: NetworkPair) -> dict[str, str]:
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
     f = r.cloud.fields
     dc = r.drift_correction
+    shell = np.asarray(f["shell"], dtype=bool)
     d = np.asarray(f["deformation"], dtype=np.float64)
     branch = np.asarray(f["branch"])
     ep = t.cmp
@@ -110,18 +112,23 @@ def score_detect(pair: NetworkPair) -> dict[str, str]:
     }
     for k, bd in enumerate(t.deformations):
         amp = bd.deformation.amplitude
-        core = (ep.branch == bd.branch) & (ep.displacement < -0.5 * amp) & np.isfinite(d)
+        dspec = bd.deformation
+        core = ((ep.branch == bd.branch) & (np.abs(ep.chainage - dspec.chainage)
+                                             <= dspec.length / 2 + 0.5)
+                & (ep.displacement < -0.5 * amp) & np.isfinite(d))
         if core.sum() < 10:
             out[f"deformation {k}"] = "core not scanned"
             continue
         ids, counts = np.unique(branch[core], return_counts=True)
         got = int(ids[np.argmax(counts)])
-        on = branch == got
-        owners, oc = np.unique(ep.branch[on], return_counts=True)
-        right = int(owners[np.argmax(oc)]) == bd.branch
         centre = ep.xyz_ref[core].mean(axis=0)
+        # right: the detected edge's curve there runs along the truth branch's axis (a ramp
+        # that continues a drift straight on is one edge with it)
+        curve = r.ref_network.edges[got].centerline
+        foot = curve.point_at(curve.project(centre[None]).chainage)
+        right = bool(t.centerlines[bd.branch].project(foot).distance[0] < 0.3)
         near = np.linalg.norm(ep.xyz_ref - centre, axis=1) < 6.0
-        read = near & (d < -0.5 * amp)
+        read = near & shell & (d < -0.5 * amp)
         dist = (float(np.linalg.norm(ep.xyz_ref[read].mean(axis=0) - centre))
                 if read.sum() >= 10 else np.inf)
         med_read, med_true = float(np.median(d[core])), float(np.median(ep.displacement[core]))

@@ -142,11 +142,13 @@ def test_real_junction_scan() -> None:
     x = read(CHAMBER).xyz
     x = x[np.random.default_rng(0).random(len(x)) < 0.5]
     net = extract_network(x).network
-    # a drift about 13 m along y through the junction, a branch of about 5.5 m leaving it
+    # a drift about 13 m along y through the junction, a branch of about 5.5 m leaving it;
+    # the drift's last 2.5 m widen and heighten into the scan's end (2.0-2.2 m against
+    # 1.7 m), so its curve ends 10-11 m along
     assert len(net.edges) == 2 and len(net.junctions) == 1
     main, branch = net.edges
     d = main.centerline.points[-1] - main.centerline.points[0]
-    assert 10.5 < main.length < 14.5 and abs(d[1]) > 10 * abs(d[2])
+    assert 9.5 < main.length < 14.5 and abs(d[1]) > 10 * abs(d[2])
     assert 3.5 < branch.length < 7.0
     j = net.junctions[0]
     # the branch has only 3-4 usable sections: its end tangent, and so the node, moves by up

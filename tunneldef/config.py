@@ -114,7 +114,7 @@ class CenterlineConfig:
     max_width_jump: float = _p(0.3, "ours: a slice wider than its neighbours' 30th percentile "
                                     "width by more than this is a chamber/niche/junction and is "
                                     "rejected (narrower: inconsistent walls), m")
-    narrow_sigmas: float = _p(4.0, "ours: a slice narrower than its neighbours' median width, "
+    narrow_sigmas: float = _p(3.0, "ours: a slice narrower than its neighbours' median width, "
                                    "or higher or lower than their median height, by more than "
                                    "this many robust spreads of those values is rejected (a "
                                    "wall read on pipes where a hole hides it; a sparse arch's "
