@@ -379,6 +379,8 @@ class PlanTopology:
             return f"plan not read ({self.reason})"
         ls = ", ".join(f"{v:.1f}" for v in self.lengths)
         n = len(self.lengths)
+        if not self.junctions:
+            return f"{n} drift{'s' if n != 1 else ''} ({ls} m), no junction"
         return (f"{n} drift{'s' if n != 1 else ''} ({ls} m) meeting at {self.junctions} "
                 f"junction{'s' if self.junctions != 1 else ''}")
 
