@@ -212,11 +212,9 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
     """Checks of the registration from its independent figures (a
     :class:`~tunneldef.registration.verify.RegistrationCheck`)."""
     return [
-        _check("registration.fit_excess", check.excess, qc.max_fit_excess, "<=", "m",
-               "the compared epoch does not lie on the reference as closely as the scans' "
-               "noise allows (tilt or offset); check that both epochs show the same tunnel",
-               f"cross-epoch point-to-plane sigma {check.cross_residual:.4f} m vs the epochs' "
-               f"own {check.ref_residual:.4f} / {check.cmp_residual:.4f} m"),
+        _fit_excess(check, qc, "the compared epoch does not lie on the reference as closely as "
+                    "the scans' noise allows (tilt or offset); check that both epochs show the "
+                    "same tunnel"),
         _check("registration.centreline_difference", check.centreline_difference,
                qc.max_centreline_difference, "<=", "m",
                "the two epochs' centrelines do not agree after registration (sparse or noisy "
@@ -252,6 +250,13 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                f"section correlation {check.coarse_shift:+.3f} m, point-to-plane "
                f"{check.fine_shift:+.4f} +- {check.fine_sigma:.4f} m"),
     ]
+
+
+def _fit_excess(check: Any, qc: QualityConfig, advice: str) -> Check:
+    """The misfit the scans' own noise does not explain (drift or network)."""
+    return _check("registration.fit_excess", check.excess, qc.max_fit_excess, "<=", "m", advice,
+                  f"cross-epoch point-to-plane sigma {check.cross_residual:.4f} m vs the "
+                  f"epochs' own {check.ref_residual:.4f} / {check.cmp_residual:.4f} m")
 
 
 def _mm(v: float) -> str:
@@ -314,11 +319,8 @@ def network_registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
     rem = float(np.linalg.norm(check.remaining)) if np.all(np.isfinite(check.remaining)) \
         else np.inf
     return [
-        _check("registration.fit_excess", check.excess, qc.max_fit_excess, "<=", "m",
-               "the compared network does not lie on the reference as closely as the scans' "
-               "noise allows; check that both epochs show the same drifts",
-               f"cross-epoch point-to-plane sigma {check.cross_residual:.4f} m vs the epochs' "
-               f"own {check.ref_residual:.4f} / {check.cmp_residual:.4f} m"),
+        _fit_excess(check, qc, "the compared network does not lie on the reference as closely "
+                    "as the scans' noise allows; check that both epochs show the same drifts"),
         _check("registration.translation_residual", rem, qc.max_axial_residual, "<=", "m",
                "an independent point-to-plane fit finds the compared network off its "
                "registered position; the registration did not converge",

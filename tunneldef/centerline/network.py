@@ -50,8 +50,8 @@ from .extract import (
     smooth_roof_lifts,
 )
 from .fit import fit_centerline
-from .plan import PlanGrid, plan_grid
-from .skeleton import SkeletonGraph, skeleton_graph
+from .plan import PlanGrid
+from .skeleton import SkeletonGraph, plan_graph
 from .slicing import slice_along_axis
 from .walls import estimate_wall_leans
 
@@ -439,11 +439,7 @@ def extract_network(
         keep = np.random.default_rng(0).random(len(pts)) < c.max_points / len(pts)
         pts = pts[keep]
     notify(progress, "network centrelines", 0.0)
-    grid = plan_grid(pts, cell=nc.cell, min_count=nc.min_count,
-                     min_component_area=nc.min_component_area, max_hole_area=nc.max_hole_area,
-                     max_cells=nc.max_cells, max_height_ratio=nc.max_height_ratio)
-    graph = skeleton_graph(grid, min_branch_length=nc.min_branch_length,
-                           through_angle_deg=nc.through_angle_deg)
+    grid, graph = plan_graph(pts, nc)
     pts = pts[grid.keep]
     t_graph = time.perf_counter() - t0
     order = np.argsort([-e.length for e in graph.edges], kind="stable")

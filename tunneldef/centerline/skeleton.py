@@ -29,7 +29,10 @@ from ..config import NetworkConfig
 from ..errors import NetworkError, TunnelDefError
 from .plan import PlanGrid, plan_grid
 
-__all__ = ["SkeletonEdge", "SkeletonGraph", "skeleton_graph", "PlanTopology", "plan_topology"]
+__all__ = [
+    "SkeletonEdge", "SkeletonGraph", "skeleton_graph", "PlanTopology", "plan_graph",
+    "plan_topology",
+]
 
 
 @dataclass
@@ -385,6 +388,18 @@ class PlanTopology:
                 f"junction{'s' if self.junctions != 1 else ''}")
 
 
+def plan_graph(xyz: np.ndarray, nc: NetworkConfig) -> tuple[PlanGrid, SkeletonGraph]:
+    """The plan grid of points (N, 3) and its simplified skeleton graph, with the
+    ``[network]`` parameters (raises :class:`~tunneldef.errors.NetworkError` on a plan that
+    cannot be read)."""
+    grid = plan_grid(xyz, cell=nc.cell, min_count=nc.min_count,
+                     min_component_area=nc.min_component_area, max_hole_area=nc.max_hole_area,
+                     max_cells=nc.max_cells, max_height_ratio=nc.max_height_ratio)
+    graph = skeleton_graph(grid, min_branch_length=nc.min_branch_length,
+                           through_angle_deg=nc.through_angle_deg)
+    return grid, graph
+
+
 def plan_topology(
     xyz: np.ndarray, network: NetworkConfig | None = None, *, max_points: int = 2_000_000
 ) -> PlanTopology:
@@ -400,12 +415,7 @@ def plan_topology(
     if len(pts) > max_points:
         pts = pts[np.random.default_rng(0).random(len(pts)) < max_points / len(pts)]
     try:
-        grid = plan_grid(pts, cell=nc.cell, min_count=nc.min_count,
-                         min_component_area=nc.min_component_area,
-                         max_hole_area=nc.max_hole_area, max_cells=nc.max_cells,
-                         max_height_ratio=nc.max_height_ratio)
-        graph = skeleton_graph(grid, min_branch_length=nc.min_branch_length,
-                               through_angle_deg=nc.through_angle_deg)
+        _, graph = plan_graph(pts, nc)
     except TunnelDefError as exc:
         return PlanTopology((), 0, str(exc).split(";")[0])
     lengths = tuple(sorted((float(e.length) for e in graph.edges), reverse=True))
