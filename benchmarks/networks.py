@@ -76,9 +76,11 @@ def score_detect(pair: NetworkPair) -> dict[str, str]:
     * per deformation (its core: truth displacement beyond half the amplitude, on its branch
       and within its chainage span): the branch the
       core was measured on (right when that edge's curve runs within 0.3 m of the truth
-      branch's axis there), the distance between the centroid of the
-      shell points (as classified) reading beyond half the amplitude within 6 m and the
-      centroid of the true core (m), and the core's median reading against its median truth.
+      branch's axis there); where the change is found along the branch: the reading-weighted
+      mean chainage of the shell points (as classified) reading beyond half the amplitude
+      within 6 m of its chainage and 1 m of its place around the section (the same
+      surface), against its true chainage (m); and the core's median reading against its
+      median truth.
     """
     from tunneldef.config import Config
     from tunneldef.pipeline import detect_network
@@ -127,15 +129,25 @@ def score_detect(pair: NetworkPair) -> dict[str, str]:
         curve = r.ref_network.edges[got].centerline
         foot = curve.point_at(curve.project(centre[None]).chainage)
         right = bool(t.centerlines[bd.branch].project(foot).distance[0] < 0.3)
-        near = np.linalg.norm(ep.xyz_ref - centre, axis=1) < 6.0
+        # where along the branch the change reads: the same surface (within 1 m of the core
+        # around the section), within 6 m of its chainage; a 3-D centroid would mix in noise
+        # readings on the other surfaces of the section
+        on = ep.branch == bd.branch
+        axis = t.centerlines[bd.branch]
+        pr = axis.project(ep.xyz_ref[on])
+        lat, ver = np.full(len(d), np.nan), np.full(len(d), np.nan)
+        lat[on], ver[on] = pr.lateral, pr.vertical
+        near = (on & (np.abs(ep.chainage - dspec.chainage) <= 6.0)
+                & (np.hypot(lat - np.median(lat[core]), ver - np.median(ver[core])) < 1.0))
         read = near & shell & (d < -0.5 * amp)
-        dist = (float(np.linalg.norm(ep.xyz_ref[read].mean(axis=0) - centre))
-                if read.sum() >= 10 else np.inf)
+        dist = (abs(float(np.sum(d[read] * ep.chainage[read]) / np.sum(d[read]))
+                    - dspec.chainage) if read.sum() >= 10 else np.inf)
         med_read, med_true = float(np.median(d[core])), float(np.median(ep.displacement[core]))
         out[f"deformation {k} ({bd.deformation.kind} {1e3 * amp:.0f} mm, truth branch "
             f"{bd.branch})"] = (
-            f"on detected branch {got} ({'right' if right else 'WRONG'} branch), peak "
-            f"{dist:.2f} m from the truth, core median {1e3 * med_read:.1f} mm vs "
+            f"on detected branch {got} ({'right' if right else 'WRONG'} branch), found "
+            f"{dist:.2f} m along the branch from its true chainage, core median "
+            f"{1e3 * med_read:.1f} mm vs "
             f"{1e3 * med_true:.1f} mm ({100 * (med_read / med_true - 1):+.0f} %)")
     return out
 

@@ -17,6 +17,7 @@ from tunneldef.centerline.fit import (
     fit_centerline,
     fit_cubic_bspline,
     fit_nurbs,
+    fit_stiffest,
     nurbs_points,
 )
 from tunneldef.errors import ImplausibleExtentError, InvalidCloudError, TunnelDefError
@@ -167,3 +168,46 @@ def test_max_length_from_the_cloud() -> None:
     far[-1] += [0.0, 0.0, 300.0]  # one centre 300 m off: its path is too long for the cloud
     with pytest.raises(ImplausibleExtentError, match="the centres' path"):
         fit_centerline(far, params=s, max_length=150.0)
+
+
+# --------------------------------------------------------------------------- stiffest fit
+
+
+def _fillet_path(s: np.ndarray, radius: float = 15.0, straight: float = 30.0) -> np.ndarray:
+    """Points at arc length ``s`` on a straight, a 90 degree fillet of ``radius``, a straight."""
+    arc = 0.5 * np.pi * radius
+    out = np.zeros((len(s), 3))
+    a = s < straight
+    out[a, 0] = s[a]
+    b = (s >= straight) & (s < straight + arc)
+    t = (s[b] - straight) / radius
+    out[b, 0] = straight + radius * np.sin(t)
+    out[b, 1] = radius * (1 - np.cos(t))
+    c = s >= straight + arc
+    out[c, 0] = straight + radius
+    out[c, 1] = radius + (s[c] - straight - arc)
+    return out
+
+
+def test_the_stiffest_fit_averages_relief_but_keeps_a_bend() -> None:
+    rng = np.random.default_rng(3)
+    # a straight drift whose centres follow +-12 mm of rock relief (6 m waves) and 8 mm noise
+    s = np.arange(0.0, 80.0, 0.5)
+    wave = 0.012 * np.sin(2 * np.pi * s / 6.0)
+    centres = np.stack([s, wave + rng.normal(0, 0.008, len(s)), np.zeros(len(s))], axis=1)
+    cl, _ = fit_stiffest(centres, params=s)
+    flex, _ = fit_centerline(centres, params=s, ctrl_spacing=2.0)
+    assert cl.meta["ctrl_spacing_m"] == 8.0
+    off = np.abs(cl.points[:, 1][(cl.points[:, 0] > 2) & (cl.points[:, 0] < 78)])
+    off_flex = np.abs(flex.points[:, 1][(flex.points[:, 0] > 2) & (flex.points[:, 0] < 78)])
+    assert np.percentile(off, 95) < 0.006 < np.percentile(off_flex, 95)
+    # the uncertainty figure is the centres' local scatter about the flexible curve
+    assert cl.meta["centre_scatter_p95_m"] == pytest.approx(
+        np.percentile(flex.project(centres).distance, 95))
+    # a 15 m radius bend: an 8 m curve would cut it by about 15 mm, so a flexible one is kept
+    s = np.arange(0.0, 30.0 + 0.5 * np.pi * 15.0 + 30.0, 0.5)
+    centres = _fillet_path(s) + rng.normal(0, 0.005, (len(s), 3)) * [1, 1, 0]
+    cl, _ = fit_stiffest(centres, params=s)
+    assert cl.meta["ctrl_spacing_m"] < 8.0 and cl.meta["systematic_misfit_m"] <= 0.01
+    truth = _fillet_path(np.arange(1.0, s[-1] - 1.0, 0.1))
+    assert np.percentile(cl.project(truth).distance, 95) < 0.01

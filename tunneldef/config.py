@@ -123,8 +123,16 @@ class CenterlineConfig:
                                      "(missing floor/roof), m")
     neighbour_window: float = _p(10.0, "ours: neighbours within +-10 m of a slice, m")
     degree: int = _p(3, "paper §3.1.4: cubic NURBS")
-    ctrl_spacing: float = _p(2.0, "ours: about one control point per 2 m: fewer control points "
-                                  "than centres, so the least-squares curve smooths their noise")
+    ctrl_spacing: float = _p(2.0, "ours: the most flexible curve has about one control point "
+                                  "per 2 m: fewer control points than centres, so the "
+                                  "least-squares curve smooths their noise")
+    max_ctrl_spacing: float = _p(8.0, "ours: the stiffest curve tried has a control point "
+                                      "every 8 m: rock relief and overbreak shift section "
+                                      "midpoints by cm over 1-8 m, which a design axis does "
+                                      "not do; a stiff curve averages them out")
+    max_misfit: float = _p(0.01, "ours: the stiffest curve (8, 4, then 2 m) whose centres' "
+                                 "running mean over max_ctrl_spacing stays within this of it "
+                                 "is kept; a bend it cuts shows as such a misfit, m")
     sample_step: float = _p(0.05, "ours: spacing of centreline samples, m")
     max_iterations: int = _p(3, "ours: re-slicing passes normal to the curve (curved tunnels)")
     converge_tol: float = _p(0.01, "ours: stop re-slicing when the curve moves less (p95), "

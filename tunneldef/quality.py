@@ -198,8 +198,9 @@ def centerline_checks(extraction: Any, qc: QualityConfig, epoch: str) -> list[Ch
                f"share of slices with floor, roof and two walls (pass {q.number})"),
         _check(f"{name}.curve_uncertainty", q.curve_uncertainty, qc.max_curve_uncertainty, "<=",
                "m", advice, f"95th percentile distance of the {q.used} used slice centres from "
-               f"the curve (median {q.residual_p50:.4f} m): the curve is held no better than "
-               "its centres scatter"),
+               "the most flexible curve through them (their local scatter; from the kept curve: "
+               f"median {q.residual_p50:.4f} m, p95 {q.residual_p95:.4f} m): the curve is held "
+               "no better than its centres scatter"),
         _check(f"{name}.cloud_distance", q.cloud_distance, q.cloud_distance_limit, "<=", "m",
                advice, "largest distance of a curve sample from the cloud; limit half the "
                "section diagonal + 0.5 m"),
@@ -306,10 +307,12 @@ def edge_checks(edge: Any, qc: QualityConfig, epoch: str, junction: str) -> list
                   "roof and two walls")]
     if not edge.centerline.meta.get("short_branch") and ok:
         res = edge.centerline.project(np.array([r.centre for r in ok])).distance
-        out.append(_check(f"{name}.curve_uncertainty", float(np.percentile(res, 95)),
+        scatter = float(edge.centerline.meta.get("centre_scatter_p95_m",
+                                                 np.percentile(res, 95)))
+        out.append(_check(f"{name}.curve_uncertainty", scatter,
                           qc.max_curve_uncertainty, "<=", "m", advice,
                           f"95th percentile distance of the {len(ok)} used slice centres "
-                          "from the curve"))
+                          "from the most flexible curve through them (their local scatter)"))
     return out
 
 

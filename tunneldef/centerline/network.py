@@ -14,7 +14,7 @@ Steps of :func:`extract_network`:
    axis, floor and roof from the 1-D Gaussian KDE peaks, walls from the 2-D linear-kernel
    density + Canny + Hough (:func:`~tunneldef.centerline.extract.analyse_slice`), slices whose
    width or height jumps against their neighbours rejected, a least-squares NURBS through the
-   centres (:func:`~tunneldef.centerline.fit.fit_centerline`); re-sliced along the fitted curve
+   centres (:func:`~tunneldef.centerline.fit.fit_stiffest`); re-sliced along the fitted curve
    until it moves less than ``converge_tol``.
 4. Junction nodes on the fitted curves (on the edge that passes through, where one does); an
    edge that ends at a junction is extended along its end tangent to the node, so the graph is
@@ -49,7 +49,7 @@ from .extract import (
     rejection_summary,
     smooth_roof_lifts,
 )
-from .fit import fit_centerline
+from .fit import fit_stiffest
 from .plan import PlanGrid
 from .skeleton import SkeletonGraph, plan_graph
 from .slicing import slice_along_axis
@@ -238,11 +238,14 @@ def _fit_edge(
     # at least two centres per control point, so that sparse centres (real scans, where many
     # slices fail) are smoothed, not interpolated
     spacing = max(c.ctrl_spacing, float(st[-1] - st[0]) / max(len(ok) // 2 - c.degree, 1))
-    cl, fit = fit_centerline(
+    # then the stiffest curve that follows the centres' course (bends keep a flexible one)
+    cl, fit = fit_stiffest(
         np.array([r.centre for r in ok]),
         params=st,
         degree=c.degree,
-        ctrl_spacing=spacing,
+        min_spacing=spacing,
+        max_spacing=max(spacing, c.max_ctrl_spacing),
+        max_misfit=c.max_misfit,
         sample_step=c.sample_step,
         meta={"n_slices": len(records), "n_used": len(ok)},
     )

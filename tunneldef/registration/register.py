@@ -245,7 +245,11 @@ def _best_candidate(
             continue
         moved = apply_transform(local, cmp_l)
         d, _ = ctx.ref_tree.query(moved, workers=query_workers(len(moved)))
-        score = _common_overlap(d, moved, ctx.ref_cl, ctx.ref_l, ctx.ref_frame)
+        # ranked by the share of *all* compared points lying on the reference: a wrong
+        # direction can still fit a short featureless stretch at the end of its search (a
+        # 16 m pair slid 10 m: 97 % of the points inside the reference's stretch on it, but
+        # those were a third of the compared epoch)
+        score = overlap_fraction(d, radius=0.1)
         fit = fitness(d)
         stage_t[method if method != "centerline" else "fine"] = time.perf_counter() - t0
         candidates.append((score, fit, q, (coarse, local, stages, info, stage_t, second), ""))
