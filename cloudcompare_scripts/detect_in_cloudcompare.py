@@ -10,6 +10,7 @@ From CloudCompare's command line (the Python runtime plugin must be installed)::
 
     CloudCompare -SILENT -O ref.las -O cmp.las -PYTHON_SCRIPT detect_in_cloudcompare.py \
         [OUT.ply] [--threshold 0.05] [--method robust|knn] [--k 3]
+        [--network auto|single|network]
 
 The FIRST loaded cloud is the reference. Put ``-PYTHON_SCRIPT`` last: the runtime hands every
 argument after the script name to the script. OUT (default: ``<compared>_deformation.ply``
@@ -18,7 +19,9 @@ reference frame with all fields (the ``tunneldef detect`` output contract), plus
 ``OUT.json`` with the summary (transform, centrelines, sections). The loaded compared cloud
 also receives the scalar fields (``deformation``, ``deformation_horizontal``,
 ``deformation_vertical``, ``chainage``, ``danger``, ...; same-named fields replaced); its
-coordinates are left as loaded. The 4 x 4 transform is printed.
+coordinates are left as loaded. The 4 x 4 transform is printed. A drift network (the plan
+shows junctions; ``--network auto``, the default) runs the network stages: every point also
+gets ``branch``, the edge it is measured against.
 
 Requires ``tunneldef`` installed in CloudCompare's Python (see docs/cloudcompare.md).
 """
@@ -38,6 +41,11 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--k", type=int, help="nearest neighbours, --method knn only (paper: 3)")
     ap.add_argument(
         "--method", choices=["robust", "knn"], help="deformation estimator (default: Config's)"
+    )
+    ap.add_argument(
+        "--network", choices=["auto", "single", "network"], default="auto",
+        help="drift network (one centreline per branch) if the plan shows junctions (auto), "
+        "never (single) or always (network)"
     )
     args, unknown = ap.parse_known_args(argv)
     if unknown:
@@ -88,7 +96,8 @@ def run_command_line(cli: Any, argv: list[str]) -> int:
 
     try:
         result = adapter.compute_detect(
-            ref, cmp, adapter.config_from_params(params), progress=progress
+            ref, cmp, adapter.config_from_params(params), progress=progress,
+            network=args.network,
         )
     except TunnelDefError as exc:
         print(f"[tunneldef] error: {exc}")

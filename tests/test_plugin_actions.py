@@ -480,3 +480,88 @@ def test_extract_centerline_action_with_real_core(pycc, plugin, monkeypatch, cap
     expected = np.array([s.width for s in res.slices])
     np.testing.assert_allclose(widths, expected, atol=5e-4, equal_nan=True)
     assert 5.5 < np.nanmedian(widths) < 6.1  # the synthetic section is 5.8 m wide
+
+
+# --------------------------------------------------------------------------- drift networks
+
+
+def _fake_network(points_per_edge):
+    """A stand-in CenterlineNetwork: edges with ids, names, curves, nodes and slices."""
+    edges = tuple(
+        SimpleNamespace(id=k, name=f"e{k}", centerline=Centerline.from_polyline(p, step=0.5),
+                        nodes=(-1, 0), slices=[SimpleNamespace(ok=True)])
+        for k, p in enumerate(points_per_edge)
+    )
+    return SimpleNamespace(edges=edges, junctions=(SimpleNamespace(id=0),))
+
+
+def test_detect_on_a_network_draws_one_polyline_per_edge_and_writes_branch(
+    pycc, plugin, monkeypatch, pair
+):
+    from tunneldef_cloudcompare import adapter
+
+    main = np.array([[0.0, 0.0, 1.45], [12.0, 0.0, 1.45]]) - SHIFT
+    xc = np.array([[6.0, -4.0, 1.45], [6.0, 4.0, 1.45]]) - SHIFT
+    seen = {}
+
+    def fake_detect_network(ref, cmp, config=None, *, progress=None):
+        seen["called"] = True
+        base = FakeCore(pair).detect(ref, cmp, config)
+        base.cloud.fields["branch"] = np.where(pair.cmp_in_ref[:, 1] + SHIFT[1] > 0, 1,
+                                               0).astype(np.uint16)
+        base.ref_network = _fake_network([main, xc])
+        base.cmp_network = _fake_network([main + [0, 0.01, 0], xc + [0, 0.01, 0]])
+        return base
+
+    _patch_core(monkeypatch, "tunneldef.pipeline", "detect_network", fake_detect_network)
+    from tunneldef_cloudcompare import jobs
+
+    monkeypatch.setattr(jobs, "is_network", lambda clouds, config=None: True)
+    ref_e, cmp_e = _select(pycc, pair)
+    made = plugin.detect_on(ref_e, cmp_e)  # auto: the plan says network
+    assert seen["called"] and len(made.ref_lines) == 2 and len(made.cmp_lines) == 2
+    assert pycc.GetInstance().db == [made.registered, *made.ref_lines, *made.cmp_lines]
+    names = [line.getName() for line in made.ref_lines + made.cmp_lines]
+    assert names[0] == "reference centreline: edge 0 e0 (12.0 m)"
+    assert names[3] == "compared centreline: edge 1 e1 (8.0 m)"
+    xyz = adapter.read_points(made.ref_lines[1].getAssociatedCloud())
+    assert np.abs(xyz - Centerline.from_polyline(xc, step=0.5).points).max() < 1e-4
+    branch = _fields(cmp_e)["branch"]
+    assert set(np.unique(branch)) == {0.0, 1.0}
+
+
+def test_network_choice_single_keeps_the_single_drift_stage(pycc, plugin, core, pair,
+                                                             monkeypatch):
+    from tunneldef_cloudcompare import jobs
+    from tunneldef_cloudcompare.params import DetectParams
+
+    monkeypatch.setattr(jobs, "is_network", lambda clouds, config=None: pytest.fail("asked"))
+    ref_e, cmp_e = _select(pycc, pair)
+    made = plugin.detect_on(ref_e, cmp_e, DetectParams(network="single"))
+    assert len(core.calls) == 1 and len(made.ref_lines) == 1
+    with pytest.raises(ValueError, match="network must be one of"):
+        jobs.compute_detect(None, None, network="maybe")
+
+
+@pytest.mark.slow
+def test_extract_centerline_on_a_network_with_real_core(pycc, plugin, capsys):
+    """A synthetic drift network (a crossing and a tee): one polyline per edge, equal to the
+    core's edge curves; the console lists the edges."""
+    from test_network import small_network
+    from tunneldef_cloudcompare import adapter
+
+    from tunneldef.centerline.network import extract_network
+    from tunneldef.synth.network import make_network_pair
+
+    p = make_network_pair(network=small_network(), deformations=(), ref_coverage=None,
+                          cmp_coverage=None, density=80.0, drift=0.0, equipment=False, seed=4)
+    xyz = p.ref.xyz + [512000.0, 5611000.0, 310.0]
+    e = _entity(pycc, xyz, "net", shift=-np.round(xyz.mean(axis=0)))
+    polys = plugin.centerline_on(e)
+    net = extract_network(adapter.entity_to_cloud(e).xyz).network
+    assert isinstance(polys, list) and len(polys) == len(net.edges) == 3
+    for poly, edge in zip(polys, net.edges, strict=True):
+        assert np.abs(adapter.read_points(poly.getAssociatedCloud())
+                      - edge.centerline.points).max() < 1e-3
+        assert f"edge {edge.id}" in poly.getName()
+    assert "3 edges, 2 junctions" in capsys.readouterr().out

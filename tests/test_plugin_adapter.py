@@ -200,7 +200,7 @@ def test_show_diverging_falls_back_to_builtin_scale(pycc, adapter, monkeypatch):
     shown = adapter.show_diverging(e, "deformation", limit=0.03, scale=None)
     sf = e.getScalarField(e.getScalarFieldIndexByName("deformation"))
     assert shown == "blue-white-red" and sf.color_scale.name == "BWR" and sf.symmetrical
-    made = adapter.DetectEntities(None, None, None, limit=0.03, colours=shown)
+    made = adapter.DetectEntities(None, limit=0.03, colours=shown)
     assert made.legend().startswith("colour scale: blue = into the tunnel")
     monkeypatch.delattr(pycc.ccScalarField, "setColorScale")
     assert adapter.show_diverging(e, "deformation", limit=0.03) == "default"

@@ -119,6 +119,9 @@ class FakeQt:
             def currentText(self):  # noqa: N802
                 return self.items[self.i]
 
+            def currentIndex(self):  # noqa: N802
+                return self.i
+
         class QCheckBox(_Widget):
             def __init__(self, *a):
                 super().__init__(*a)
@@ -174,11 +177,14 @@ def test_dialog_states_reference_and_swaps(monkeypatch):
         w.ints[0].setValue(6)
         assert w.combos[0].currentText() == "robust"  # Config().deformation.method
         w.combos[0].setCurrentIndex(1)
+        assert w.combos[1].currentText().startswith("auto")  # network: decided from the plan
+        w.combos[1].setCurrentIndex(2)
         w.checks[0].setChecked(True)
 
     monkeypatch.setattr(dialog, "qt_widgets", lambda: FakeQt(user))
     p = dialog.ask_detect_params("epoch A", "epoch B", DetectParams(threshold=0.05, k=3))
-    assert p == DetectParams(swap=True, threshold=0.025, k=6, method="knn", move_original=True)
+    assert p == DetectParams(swap=True, threshold=0.025, k=6, method="knn", move_original=True,
+                             network="network")
 
 
 def test_dialog_cancel_returns_none(monkeypatch):

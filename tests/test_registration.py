@@ -399,3 +399,27 @@ def test_refinement_repairs_a_bad_centreline_and_stays_off_otherwise():
     assert fixed.info["refine"]["applied"] is True
     rms, rot_err = _errors(fixed, pair)
     assert rms <= 0.01 and rot_err <= 0.05, (rms, rot_err)
+
+
+def test_open3d_icp_converges_in_survey_coordinates() -> None:
+    """Open3D linearises the rotation about the origin: 5.6e6 m from it, the ICP diverged
+    (a drift network in survey coordinates found no common branch after registration)."""
+    from tunneldef.registration.baselines import icp_plane
+    from tunneldef.synth import TunnelSpec, make_tunnel
+    from tunneldef.transforms import apply_transform
+
+    cloud, _ = make_tunnel(TunnelSpec(length=20.0, density=60.0, chamber=True), seed=2)
+    a = np.deg2rad(0.5)
+    truth = np.eye(4)
+    truth[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    truth[:3, 3] = [0.05, -0.03, 0.02]
+    offset = np.array([512000.0, 5611000.0, 310.0])
+    ref = cloud.xyz + offset
+    # the compared epoch: the reference moved by the inverse of the truth about the offset
+    shift, back = np.eye(4), np.eye(4)
+    shift[:3, 3], back[:3, 3] = -offset, offset
+    world_truth = back @ truth @ shift
+    cmp = apply_transform(np.linalg.inv(world_truth), ref)
+    t = icp_plane(ref, cmp, np.eye(4), voxel=0.1, max_distance=0.5, iterations=60)
+    err = np.linalg.norm(apply_transform(t, cmp) - ref, axis=1)
+    assert err.max() < 0.002

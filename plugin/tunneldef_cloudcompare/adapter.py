@@ -42,6 +42,7 @@ from .entities import make_point_cloud, make_polyline, move_entity
 from .fields import write_scalar_fields
 from .jobs import (
     DEFORMATION_FIELDS,
+    NETWORK_CHOICES,
     OPTIONAL_FIELDS,
     DetectEntities,
     apply_centerline,
@@ -50,6 +51,7 @@ from .jobs import (
     compute_centerline,
     compute_detect,
     compute_register,
+    is_network,
     result_fields,
 )
 from .params import DetectParams, config_from_params
@@ -60,6 +62,8 @@ from .worker import Outcome, ProgressBridge, run_guarded, run_in_worker
 
 __all__ = [
     "DEFORMATION_FIELDS",
+    "NETWORK_CHOICES",
+    "is_network",
     "OPTIONAL_FIELDS",
     "DetectParams",
     "Outcome",

@@ -13,11 +13,11 @@ import importlib
 import logging
 from typing import Any
 
-from .params import DetectParams
+from .params import NETWORK_CHOICES, DetectParams
 
 log = logging.getLogger(__name__)
 
-__all__ = ["qt_widgets", "ask_detect_params", "show_message", "METHODS"]
+__all__ = ["qt_widgets", "ask_detect_params", "show_message", "METHODS", "NETWORK_CHOICES"]
 
 #: Deformation estimators offered in the dialog (``Config.deformation.method``): ``robust``
 #: (local surface, per-point level of detection; the default) and ``knn`` (paper §3.3.1).
@@ -120,6 +120,14 @@ def _qt_dialog(qw: Any, first: str, second: str, params: DetectParams) -> Detect
         method.setCurrentIndex(METHODS.index(params.method))
     form.addRow("Method:", method)
 
+    network = qw.QComboBox()
+    labels = {"auto": "auto (network if the plan shows junctions)", "single": "one drift",
+              "network": "drift network (one centreline per branch)"}
+    network.addItems([labels[c] for c in NETWORK_CHOICES])
+    if params.network in NETWORK_CHOICES:
+        network.setCurrentIndex(NETWORK_CHOICES.index(params.network))
+    form.addRow("Tunnel:", network)
+
     move = qw.QCheckBox("Also move the original compared cloud into the reference frame")
     move.setChecked(params.move_original)
     form.addRow("", move)
@@ -140,4 +148,5 @@ def _qt_dialog(qw: Any, first: str, second: str, params: DetectParams) -> Detect
         k=int(k.value()),
         method=str(method.currentText()),
         move_original=bool(move.isChecked()),
+        network=NETWORK_CHOICES[int(network.currentIndex())],
     )

@@ -1,5 +1,9 @@
 """The three jobs, each in two steps: compute (worker thread: the core on numpy arrays, never
-an entity) and apply (main thread: scalar fields, colours, new entities)."""
+an entity) and apply (main thread: scalar fields, colours, new entities).
+
+An epoch whose plan shows junctions (cross-cuts, crossings: the core's
+:func:`~tunneldef.centerline.skeleton.plan_topology`) is a drift network: detection and
+extraction then run the core's network stages and draw one polyline per edge."""
 
 from __future__ import annotations
 
@@ -17,10 +21,13 @@ from .colours import (
 )
 from .entities import CENTERLINE_COLOURS, make_point_cloud, make_polyline, move_entity
 from .fields import write_scalar_fields
+from .params import NETWORK_CHOICES
 from .runtime import entity_name
 from .text import format_matrix, format_slice_table
 
 __all__ = [
+    "NETWORK_CHOICES",
+    "is_network",
     "DEFORMATION_FIELDS",
     "OPTIONAL_FIELDS",
     "DetectEntities",
@@ -33,8 +40,25 @@ __all__ = [
     "apply_register",
 ]
 
-#: Optional fields written too when the estimator provides them (significance, classes).
-OPTIONAL_FIELDS = ("significant", "lod95", "shell", "surface", "class")
+#: Optional fields written too when the estimator provides them (significance, classes;
+#: ``branch``: the network edge a point is measured against).
+OPTIONAL_FIELDS = ("significant", "lod95", "shell", "surface", "class", "branch")
+
+
+def is_network(clouds: Any, config: Any = None) -> bool:
+    """True if any of ``clouds`` (core :class:`~tunneldef.cloud.Cloud`) is a drift network:
+    its plan footprint's skeleton has a junction (a few seconds per million points)."""
+    from tunneldef.centerline.skeleton import plan_topology
+    from tunneldef.config import Config
+
+    nc = (config or Config()).network
+    return any(plan_topology(c.xyz, nc).junctions > 0 for c in clouds)
+
+
+def _wants_network(network: str, clouds: Any, config: Any) -> bool:
+    if network not in NETWORK_CHOICES:
+        raise ValueError(f"network must be one of {NETWORK_CHOICES}, not {network!r}")
+    return network == "network" or (network == "auto" and is_network(clouds, config))
 
 
 #: Fields every detection writes onto the compared cloud: the core's output contract,
@@ -49,18 +73,25 @@ DEFORMATION_FIELDS = (
 
 
 def compute_detect(
-    ref: Any, cmp: Any, config: Any = None, *, progress: Any = None, memory_gb: float = 1.5
+    ref: Any, cmp: Any, config: Any = None, *, progress: Any = None, memory_gb: float = 1.5,
+    network: str = "auto",
 ) -> Any:
-    """Worker-thread part of "Detect deformation": :func:`tunneldef.pipeline.detect`.
+    """Worker-thread part of "Detect deformation": :func:`tunneldef.pipeline.detect`, or
+    :func:`tunneldef.pipeline.detect_network` for a drift network (``network``: one of
+    :data:`NETWORK_CHOICES`).
 
-    The deformation stage runs in chainage tiles on Dask's local threaded scheduler, as
-    ``tunneldef detect`` does, so its working memory is bounded by ``memory_gb`` (GB) and not
-    by the survey; the tiles' temporary files go to the system's temporary folder.
+    A single drift's deformation stage runs in chainage tiles on Dask's local threaded
+    scheduler, as ``tunneldef detect`` does, so its working memory is bounded by
+    ``memory_gb`` (GB) and not by the survey; the tiles' temporary files go to the system's
+    temporary folder.
     """
     import tempfile
 
     from tunneldef.engine import open_engine
-    from tunneldef.pipeline import detect
+    from tunneldef.pipeline import detect, detect_network
+
+    if _wants_network(network, (ref, cmp), config):
+        return detect_network(ref, cmp, config, progress=progress)
 
     with open_engine(memory_gb=memory_gb) as engine:
         tiles = {"memory_gb": engine.tile_memory_gb, "engine": engine,
@@ -79,14 +110,26 @@ def result_fields(cloud: Any) -> dict[str, np.ndarray]:
 
 @dataclass
 class DetectEntities:
-    """Entities the "Detect deformation" action created (to add to the DB tree)."""
+    """Entities the "Detect deformation" action created (to add to the DB tree): the
+    registered copy and the centrelines as polylines, one per edge of each epoch (one each
+    for a single drift)."""
 
     registered: Any
-    ref_centerline: Any
-    cmp_centerline: Any
+    ref_lines: list[Any] = field(default_factory=list)
+    cmp_lines: list[Any] = field(default_factory=list)
     keep_alive: list[Any] = field(default_factory=list)
     limit: float = 0.0
     colours: str = SCALE_RED_IN
+
+    @property
+    def ref_centerline(self) -> Any:
+        """The reference centreline's (first) polyline."""
+        return self.ref_lines[0] if self.ref_lines else None
+
+    @property
+    def cmp_centerline(self) -> Any:
+        """The compared centreline's (first) polyline."""
+        return self.cmp_lines[0] if self.cmp_lines else None
 
     def legend(self) -> str:
         """One line saying what the colours mean, for the console."""
@@ -98,7 +141,7 @@ class DetectEntities:
         return f"colour scale: {ends}, saturated at ±{self.limit * 1000:.0f} mm"
 
     def new_entities(self) -> list[Any]:
-        return [self.registered, self.ref_centerline, self.cmp_centerline]
+        return [self.registered, *self.ref_lines, *self.cmp_lines]
 
 
 def apply_detect(
@@ -128,46 +171,82 @@ def apply_detect(
         result.cloud.xyz, like=ref_entity, name=f"{base} (registered)", fields=fields
     )
     show_diverging(registered, "deformation", limit=limit, scale=scale)
-    ref_line, ref_v = make_polyline(
-        result.ref_centerline.points,
-        like=ref_entity,
-        name="reference centreline",
-        colour=CENTERLINE_COLOURS["reference"],
-    )
-    cmp_line, cmp_v = make_polyline(
-        result.cmp_centerline.points,
-        like=ref_entity,
-        name="compared centreline",
-        colour=CENTERLINE_COLOURS["compared"],
-    )
+    ref_lines, ref_v = _lines(result, "reference", like=ref_entity)
+    cmp_lines, cmp_v = _lines(result, "compared", like=ref_entity)
     if move_original:
         move_entity(cmp_entity, result.transform)
-    return DetectEntities(registered, ref_line, cmp_line, [ref_v, cmp_v], limit, colours)
+    return DetectEntities(registered, ref_lines, cmp_lines, ref_v + cmp_v, limit, colours)
+
+
+def _edge_name(prefix: str, edge: Any) -> str:
+    return f"{prefix}: edge {edge.id} {edge.name} ({edge.centerline.length:.1f} m)"
+
+
+def _lines(result: Any, epoch: str, *, like: Any) -> tuple[list[Any], list[Any]]:
+    """Polylines (and their vertex clouds to keep alive) of one epoch's centreline, or of
+    every edge of its network."""
+    network = getattr(result, "ref_network" if epoch == "reference" else "cmp_network", None)
+    if network is not None:
+        curves = [(_edge_name(f"{epoch} centreline", e), e.centerline.points)
+                  for e in network.edges]
+    else:
+        cl = result.ref_centerline if epoch == "reference" else result.cmp_centerline
+        curves = [(f"{epoch} centreline", cl.points)]
+    lines, vertices = [], []
+    for name, points in curves:
+        line, v = make_polyline(points, like=like, name=name,
+                                colour=CENTERLINE_COLOURS[epoch])
+        lines.append(line)
+        vertices.append(v)
+    return lines, vertices
 
 
 # --------------------------------------------------------------------------- centreline
 
 
-def compute_centerline(cloud: Any, config: Any = None, *, progress: Any = None) -> Any:
-    """Worker-thread part of "Extract centerline": ``extract_centerline`` of the core."""
+def compute_centerline(
+    cloud: Any, config: Any = None, *, progress: Any = None, network: str = "auto"
+) -> Any:
+    """Worker-thread part of "Extract centerline": ``extract_centerline`` of the core, or
+    ``extract_network`` for a drift network (``network``: one of :data:`NETWORK_CHOICES`)."""
     from tunneldef.centerline import extract_centerline
+    from tunneldef.centerline.network import extract_network
     from tunneldef.config import Config
 
     cfg = config or Config()
+    if _wants_network(network, (cloud,), cfg):
+        return extract_network(cloud.xyz, slicing=cfg.slicing, settings=cfg.centerline,
+                               network=cfg.network, progress=progress)
     return extract_centerline(
         cloud.xyz, slicing=cfg.slicing, settings=cfg.centerline, progress=progress
     )
 
 
-def apply_centerline(entity: Any, extraction: Any) -> tuple[Any, Any, str]:
-    """Main-thread part: ``(polyline, vertices, table)`` for an extraction result."""
-    poly, vertices = make_polyline(
-        extraction.centerline.points,
-        like=entity,
-        name=f"{entity_name(entity)} centreline",
-        colour=CENTERLINE_COLOURS["reference"],
-    )
-    return poly, vertices, format_slice_table(extraction.slices)
+def apply_centerline(entity: Any, extraction: Any) -> tuple[list[Any], list[Any], str]:
+    """Main-thread part: ``(polylines, vertices, text)`` for an extraction result: one
+    polyline and the per-slice table for a drift, one polyline per edge and a line per edge
+    for a network."""
+    base = f"{entity_name(entity)} centreline"
+    network = getattr(extraction, "network", None)
+    if network is None:
+        curves = [(base, extraction.centerline.points)]
+        text = format_slice_table(extraction.slices)
+    else:
+        curves = [(_edge_name(base, e), e.centerline.points) for e in network.edges]
+        rows = []
+        for e in network.edges:
+            used = sum(1 for r in e.slices if r.ok)
+            rows.append(f"edge {e.id} {e.name}: {e.centerline.length:.2f} m, nodes "
+                        f"{e.nodes[0]} -> {e.nodes[1]}, {used} of {len(e.slices)} slices used")
+        text = (f"{len(network.edges)} edges, {len(network.junctions)} junctions\n"
+                + "\n".join(rows))
+    polys, vertices = [], []
+    for name, points in curves:
+        poly, v = make_polyline(points, like=entity, name=name,
+                                colour=CENTERLINE_COLOURS["reference"])
+        polys.append(poly)
+        vertices.append(v)
+    return polys, vertices, text
 
 
 # --------------------------------------------------------------------------- registration

@@ -6,7 +6,11 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["DetectParams", "config_from_params"]
+__all__ = ["NETWORK_CHOICES", "DetectParams", "config_from_params"]
+
+#: How a pair is treated: ``auto`` (a drift network if either epoch's plan shows junctions),
+#: ``single`` (one drift; the core refuses a network) or ``network``.
+NETWORK_CHOICES = ("auto", "single", "network")
 
 
 def _config_default(section: str, name: str) -> Any:
@@ -35,6 +39,9 @@ class DetectParams:
         ``"knn"`` (the paper's KNN centroid).
     move_original : bool
         Also move the original compared cloud into the reference frame (default: leave it).
+    network : str
+        ``"auto"``: a drift network (one centreline per edge, deformation per branch) if either
+        epoch's plan shows junctions; ``"single"``: one drift; ``"network"``.
 
     Every default is the :class:`tunneldef.config.Config` default.
     """
@@ -44,6 +51,7 @@ class DetectParams:
     k: int = field(default_factory=lambda: int(_config_default("deformation", "k")))
     method: str = field(default_factory=lambda: str(_config_default("deformation", "method")))
     move_original: bool = False
+    network: str = "auto"
 
     @classmethod
     def from_config(cls, config: Any = None, **overrides: Any) -> DetectParams:

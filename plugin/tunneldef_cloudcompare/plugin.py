@@ -175,7 +175,8 @@ def detect_on(ref_e: Any, cmp_e: Any, params: DetectParams | None = None) -> Any
         f"compared: {cmp.meta['name']} ({len(cmp)} points); {params}"
     )
 
-    outcome, bridge = _run_with_progress(action, adapter.compute_detect, ref, cmp, config)
+    outcome, bridge = _run_with_progress(action, adapter.compute_detect, ref, cmp, config,
+                                         network=params.network)
     if not outcome.ok:
         _report_failure(action, outcome)
         return None
@@ -202,32 +203,41 @@ def detect_on(ref_e: Any, cmp_e: Any, params: DetectParams | None = None) -> Any
 
 
 def extract_centerline(*, config: Any = None) -> Any:
-    """Menu action *Extract centerline*: one selected cloud -> a polyline.
+    """Menu action *Extract centerline*: one selected cloud -> a polyline (one per edge for
+    a drift network).
 
-    Per-slice width/height are printed as a table in the console. Returns the polyline or
-    None."""
+    Per-slice width/height (per-edge lengths for a network) are printed in the console.
+    Returns what :func:`centerline_on` returns."""
     clouds = _selected_clouds(1, "Extract centerline")
     return None if clouds is None else centerline_on(clouds[0], config=config)
 
 
-def centerline_on(entity: Any, *, config: Any = None) -> Any:
-    """*Extract centerline* on a given cloud (no selection needed); the polyline or None."""
+def centerline_on(entity: Any, *, config: Any = None, network: str = "auto") -> Any:
+    """*Extract centerline* on a given cloud (no selection needed).
+
+    Returns the polyline of a drift, the list of per-edge polylines of a drift network
+    (``network``: ``"auto"`` decides from the cloud's plan, ``"single"``, ``"network"``), or
+    None (after a one-line message)."""
     action = "Extract centerline"
     if not _runtime_ok(action):
         return None
     cloud = adapter.entity_to_cloud(entity)
-    outcome, _ = _run_with_progress(action, adapter.compute_centerline, cloud, config)
+    outcome, _ = _run_with_progress(action, adapter.compute_centerline, cloud, config,
+                                    network=network)
     if not outcome.ok:
         _report_failure(action, outcome)
         return None
-    poly, vertices, table = adapter.apply_centerline(entity, outcome.value)
-    _keep([vertices])
-    _add([poly])
-    _console(
-        f"[tunneldef] centreline of {cloud.meta['name']}: "
-        f"{outcome.value.centerline.length:.2f} m\n{table}"
-    )
-    return poly
+    polys, vertices, text = adapter.apply_centerline(entity, outcome.value)
+    _keep(vertices)
+    _add(polys)
+    if getattr(outcome.value, "network", None) is None:
+        _console(
+            f"[tunneldef] centreline of {cloud.meta['name']}: "
+            f"{outcome.value.centerline.length:.2f} m\n{text}"
+        )
+        return polys[0]
+    _console(f"[tunneldef] centreline network of {cloud.meta['name']}: {text}")
+    return polys
 
 
 def register_to_reference(*, config: Any = None) -> Any:

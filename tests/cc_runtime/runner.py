@@ -246,3 +246,30 @@ def write_pair(
         write(path, Cloud(xyz))
         paths.append(path)
     return paths[0], paths[1]
+
+
+def write_network_pair(out_dir: Path, *, seed: int = 3, density: float = 150.0):
+    """A small synthetic drift network pair (a 40 m drift, a cross-cut through it and a dead
+    end: ``test_network.small_network``; a 19 mm wall bulge on the cross-cut), about 150 k
+    points per epoch, in survey coordinates on the 2**-10 m grid, as ``ref.ply`` and
+    ``cmp.ply``; returns ``(ref_path, cmp_path)``."""
+    import numpy as np
+    from test_network import small_network
+
+    from tunneldef.cloud import Cloud
+    from tunneldef.io import write
+    from tunneldef.synth import DeformationSpec
+    from tunneldef.synth.network import BranchDeformation, make_network_pair
+
+    bulge = BranchDeformation(1, DeformationSpec("wall_bulge", 19.0, 3.0, 1.5, 0.06, "left"))
+    pair = make_network_pair(network=small_network(), deformations=(bulge,), ref_coverage=None,
+                             cmp_coverage=None, density=density, drift=0.0, equipment=False,
+                             seed=seed, yaw_deg=30.0)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, cloud in (("ref", pair.ref), ("cmp", pair.cmp)):
+        xyz = np.round((cloud.xyz + SURVEY_OFFSET) * 2**10) / 2**10
+        path = out_dir / f"{name}.ply"
+        write(path, Cloud(xyz))
+        paths.append(path)
+    return paths[0], paths[1]

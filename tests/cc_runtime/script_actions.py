@@ -123,6 +123,11 @@ def do_centerline(plugin, adapter, ref_e, cmp_e, *, last: bool) -> dict:
     poly = plugin.centerline_on(ref_e)
     if poly is None:
         raise RuntimeError("centerline_on returned None")
+    if isinstance(poly, list):  # a drift network: one polyline per edge
+        if last and not os.environ.get("TDCC_NO_ARRAYS"):
+            for k, p in enumerate(poly):
+                ARRAYS[f"centerline:{k}"] = adapter.read_points(p.getAssociatedCloud())
+        return {"names": [p.getName() for p in poly], "sizes": [int(p.size()) for p in poly]}
     if last and not os.environ.get("TDCC_NO_ARRAYS"):
         ARRAYS["centerline"] = adapter.read_points(poly.getAssociatedCloud())
     return {"name": poly.getName(), "size": int(poly.size())}
@@ -153,10 +158,13 @@ def do_detect(plugin, adapter, ref_e, cmp_e, *, last: bool) -> dict:
         ARRAYS["registered_deformation"] = sf_array(made.registered, "deformation")
         ARRAYS["ref_centerline"] = adapter.read_points(made.ref_centerline.getAssociatedCloud())
         ARRAYS["cmp_centerline"] = adapter.read_points(made.cmp_centerline.getAssociatedCloud())
+        for key, lines in (("ref", made.ref_lines), ("cmp", made.cmp_lines)):
+            for k, line in enumerate(lines):
+                ARRAYS[f"{key}_line:{k}"] = adapter.read_points(line.getAssociatedCloud())
         lim = made.limit
         rec["scale"] = colours_of(cmp_e, "deformation", [-lim, -lim / 2, 0.0, lim / 2, lim])
         rec["registered_shift"] = adapter.shift_and_scale(made.registered)[0].tolist()
-        rec["polylines"] = [made.ref_centerline.getName(), made.cmp_centerline.getName()]
+        rec["polylines"] = [line.getName() for line in made.ref_lines + made.cmp_lines]
     return rec
 
 

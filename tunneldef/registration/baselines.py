@@ -45,7 +45,21 @@ def _open3d_icp(
     max_distance: float,
     iterations: int,
 ) -> np.ndarray:
-    """One Open3D ICP variant ("point", "plane" or "generalized") from ``init``."""
+    """One Open3D ICP variant ("point", "plane" or "generalized") from ``init``.
+
+    Both clouds are moved by the same offset (the reference's centroid, rounded to 1 km)
+    first: Open3D linearises the rotation about the origin, and in survey coordinates
+    (5.6e6 m) a milliradian of rotation is kilometres of translation, so the ICP diverged.
+    """
+    origin = np.round(np.mean(np.asarray(ref_xyz[:: max(len(ref_xyz) // 1000, 1)],
+                                         dtype=np.float64), axis=0), -3)
+    if np.any(np.abs(origin) > 0):
+        to_local, to_world = np.eye(4), np.eye(4)
+        to_local[:3, 3], to_world[:3, 3] = -origin, origin
+        local = _open3d_icp(ref_xyz - origin, cmp_xyz - origin,
+                            to_local @ np.asarray(init, dtype=np.float64) @ to_world, kind,
+                            voxel=voxel, max_distance=max_distance, iterations=iterations)
+        return to_world @ local @ to_local
     dst = _pcd(ref_xyz, voxel)
     if kind == "plane":
         dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
