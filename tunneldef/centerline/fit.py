@@ -486,8 +486,13 @@ def fit_stiffest(
     scatter = float(np.percentile(flex.project(q).distance, 95))
     chosen, misfit = None, np.nan
     for spacing in reversed(spacings[1:]):
-        cl, fit = fit_centerline(q, params=st, degree=degree, ctrl_spacing=spacing,
-                                 sample_step=sample_step)
+        try:
+            cl, fit = fit_centerline(q, params=st, degree=degree, ctrl_spacing=spacing,
+                                     sample_step=sample_step)
+        except (ImplausibleExtentError, LinAlgError):
+            # a stiff curve can shed a bend's centres as outliers (its reweighting) and then
+            # swing wide over the span it lost: not a candidate
+            continue
         misfit = systematic_misfit(cl, q, st, max_spacing)
         if misfit <= max_misfit:
             chosen = (cl, fit, spacing)

@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from ..curve import Centerline
 from ..spatial import query_workers
 
-__all__ = ["AxialShift", "coarse_shift", "fine_shift", "section_image"]
+__all__ = ["AxialShift", "coarse_shift", "fine_shift", "noise_kernel", "section_image"]
 
 logger = logging.getLogger(__name__)
 
@@ -191,6 +191,18 @@ def coarse_shift(
     return float(shifts[best] * step), spread
 
 
+def noise_kernel(residuals: np.ndarray) -> float:
+    """The narrowest Tukey kernel the residuals' own noise allows: 4.685 robust sigmas
+    (1.4826 x their median absolute value), Tukey's 95 %-efficiency constant, metres.
+
+    A kernel narrower than the scans' noise cuts the residual distribution off at its
+    shoulders, and where surfaces end (a chamber's edges) the cut is one-sided: the fit is
+    biased and its sigma too small (+-29 mm noise, 5 cm kernel: a slide 11 mm off along the
+    axis, claimed +-2 mm)."""
+    r = np.asarray(residuals, dtype=np.float64)
+    return 4.685 * 1.4826 * float(np.median(np.abs(r))) if r.size else 0.0
+
+
 def fine_shift(
     ref_xyz: np.ndarray,
     ref_normals: np.ndarray,
@@ -211,8 +223,8 @@ def fine_shift(
     width changes, rough rock, equipment) carry information. The uncertainty is the larger of
     the least-squares value ``sigma_r / sqrt(sum(w (n . t)^2))`` and a delete-one-block
     jackknife over chainage blocks (features are few, errors within a block correlated).
-    No kernel after the first is narrower than Tukey's 4.685 robust sigmas of the first
-    stage's residuals (1.4826 MAD), so noisy scans keep an unbiased kernel.
+    No kernel after the first is narrower than :func:`noise_kernel` of the first stage's
+    residuals, so noisy scans keep an unbiased kernel.
 
     Parameters
     ----------
@@ -235,11 +247,8 @@ def fine_shift(
     """
     tree = tree if tree is not None else cKDTree(ref_xyz)
     delta = 0.0
-    scale = 0.0  # Tukey's 4.685 robust sigmas of the residuals, once the widest kernel settled
+    scale = 0.0  # noise_kernel of the residuals, once the widest kernel settled
     for stage, kernel in enumerate(kernels):
-        # a kernel narrower than the scans' noise cuts the residual distribution off at its
-        # shoulders, and at a chamber's edges the cut is one-sided: the shift is biased and
-        # its sigma too small (+-29 mm noise, 5 cm kernel: 11 mm off, claimed +-2 mm)
         kernel = max(kernel, scale)
         for _ in range(iterations):
             p = cmp_xyz + delta * tangents
@@ -261,7 +270,7 @@ def fine_shift(
             if abs(step) < 1e-5:
                 break
         if stage == 0:
-            scale = 4.685 * 1.4826 * float(np.median(np.abs(r)))
+            scale = noise_kernel(r)
     sw = float(w.sum())
     sigma_r = np.sqrt(float(np.sum(w * r * r)) / max(sw - 1, 1.0))
     used = j[ok][w > 0]

@@ -44,8 +44,12 @@ def _open3d_icp(
     voxel: float,
     max_distance: float,
     iterations: int,
+    ref_normals: np.ndarray | None = None,
 ) -> np.ndarray:
     """One Open3D ICP variant ("point", "plane" or "generalized") from ``init``.
+
+    With ``ref_normals`` (point-to-plane only) the reference is taken as it is, already thinned
+    and with these unit normals, instead of being thinned to ``voxel`` and given normals here.
 
     Both clouds are moved by the same offset (the reference's centroid, rounded to 1 km)
     first: Open3D linearises the rotation about the origin, and in survey coordinates
@@ -58,11 +62,17 @@ def _open3d_icp(
         to_local[:3, 3], to_world[:3, 3] = -origin, origin
         local = _open3d_icp(ref_xyz - origin, cmp_xyz - origin,
                             to_local @ np.asarray(init, dtype=np.float64) @ to_world, kind,
-                            voxel=voxel, max_distance=max_distance, iterations=iterations)
+                            voxel=voxel, max_distance=max_distance, iterations=iterations,
+                            ref_normals=ref_normals)
         return to_world @ local @ to_local
-    dst = _pcd(ref_xyz, voxel)
-    if kind == "plane":
-        dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
+    if ref_normals is not None and kind == "plane":
+        dst = _pcd(ref_xyz, 0.0)
+        dst.normals = o3d.utility.Vector3dVector(np.asarray(ref_normals, dtype=np.float64))
+    else:
+        dst = _pcd(ref_xyz, voxel)
+        if kind == "plane":
+            dst.estimate_normals(
+                o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
     run = _reg.registration_generalized_icp if kind == "generalized" else _reg.registration_icp
     estimation = {
         "point": _reg.TransformationEstimationPointToPoint,
@@ -95,10 +105,12 @@ def icp_plane(
     voxel: float = 0.05,
     max_distance: float = 0.5,
     iterations: int = 60,
+    ref_normals: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Open3D point-to-plane ICP; returns the (4, 4) cmp -> ref transform (metres)."""
+    """Open3D point-to-plane ICP; returns the (4, 4) cmp -> ref transform (metres).
+    ``ref_normals``: the reference's unit normals, when it is already thinned and has them."""
     return _open3d_icp(ref_xyz, cmp_xyz, init, "plane", voxel=voxel, max_distance=max_distance,
-                       iterations=iterations)
+                       iterations=iterations, ref_normals=ref_normals)
 
 
 def gicp(

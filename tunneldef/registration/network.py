@@ -301,7 +301,7 @@ def correct_drift(
                 continue
             pick = sel if len(sel) <= sample else rng.choice(sel, sample, replace=False)
             t = icp_plane(rp[rsel], cmp_xyz[pick], np.eye(4), voxel=voxel,
-                          max_distance=max_distance, iterations=30)
+                          max_distance=max_distance, iterations=30, ref_normals=rn[rsel])
             rows.append(t)
         # blend the blocks' displacements with hat functions on the block centres
         for k, (c, t) in enumerate(zip(centres, rows, strict=True)):
