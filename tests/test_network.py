@@ -161,9 +161,12 @@ def test_real_junction_scan() -> None:
 
 
 @pytest.mark.slow
-def test_a_single_tube_run_refuses_a_network_at_once(pair, tmp_path, capsys) -> None:  # noqa: ANN001
-    """`detect` without --network on a drift network stops before any centreline (a second or
-    two here), naming the drifts and junctions it saw and what to run instead."""
+def test_a_single_tube_run_refuses_a_network_at_once(pair, tmp_path, capsys,  # noqa: ANN001
+                                                     monkeypatch) -> None:  # noqa: ANN001
+    """`detect --single` on a drift network stops before any centreline (a second or two
+    here), naming the drifts and junctions it saw and what to run instead; without a choice
+    the plan's junctions send it to the network stages."""
+    import tunneldef.pipeline as pipeline
     from tunneldef.centerline.skeleton import plan_topology
     from tunneldef.cli import main
     from tunneldef.synth.sampling import write_epochs
@@ -173,10 +176,18 @@ def test_a_single_tube_run_refuses_a_network_at_once(pair, tmp_path, capsys) -> 
     assert topo.lengths[0] > 30.0  # the 40 m main drift, through its crossing
     paths = write_epochs(pair.ref, pair.cmp, tmp_path, "ply")
     out = tmp_path / "out.ply"
-    code = main(["detect", str(paths["ref"]), str(paths["cmp"]), "-o", str(out), "--quiet"])
+    code = main(["detect", str(paths["ref"]), str(paths["cmp"]), "-o", str(out), "--quiet",
+                 "--single"])
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert code == 2 and not out.exists()
     assert "reference_epoch.junctions 2 > limit 0" in line and "--network" in line
+
+    def stub(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise TunnelDefError("the network stages were chosen")
+
+    monkeypatch.setattr(pipeline, "detect_network", stub)
+    code = main(["detect", str(paths["ref"]), str(paths["cmp"]), "-o", str(out), "--quiet"])
+    assert code == 2 and "the network stages were chosen" in capsys.readouterr().err
 
 
 def test_detect_network_measures_each_branch() -> None:

@@ -170,7 +170,7 @@ def cmd_centerline(args: argparse.Namespace) -> int:
     config = _load_config(args)
     cloud = read(src, strict=args.strict)
     progress = None if args.quiet else StageLogger(log)
-    if args.network:
+    if _as_network(args, [cloud], config):
         return _centerline_network(cloud, config, out, progress)
     result = extract_centerline(
         cloud.xyz, slicing=config.slicing, settings=config.centerline, progress=progress
@@ -278,6 +278,15 @@ def cmd_register(args: argparse.Namespace) -> int:
     return 0
 
 
+def _as_network(args: argparse.Namespace, clouds: list[Any], config: Any) -> bool:
+    """``--network``, ``--single``, or else whether the plan of any epoch shows a junction."""
+    from .pipeline import is_network
+
+    if args.network or args.single:
+        return bool(args.network)
+    return is_network(clouds, config)
+
+
 def cmd_detect(args: argparse.Namespace) -> int:
     from .cloud import Cloud
     from .engine import open_engine
@@ -301,7 +310,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     log.info("reference %s: %s points; compared %s: %s points", ref_path.name, f"{len(ref):,}",
              cmp_path.name, f"{len(cmp):,}")
     progress = None if args.quiet else StageLogger(log)
-    if getattr(args, "network", False):
+    if _as_network(args, [ref, cmp], config):
         from .pipeline import detect_network
 
         if args.no_drift_correction:
@@ -451,10 +460,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True,
                    help="centerline.csv (slices), .json, or .ply/.las/.laz (curve points)")
     p.add_argument("--plots", metavar="DIR", help="write diagnostic figures into DIR")
-    p.add_argument("--network", action="store_true",
-                   help="a drift network: write the graph of edges and junctions (JSON: nodes "
-                   "and edges; CSV: slices with their edge; PLY/LAS/LAZ: curve points with an "
-                   "edge field)")
+    kind = p.add_mutually_exclusive_group()
+    kind.add_argument("--network", action="store_true",
+                      help="a drift network: write the graph of edges and junctions (JSON: "
+                      "nodes and edges; CSV: slices with their edge; PLY/LAS/LAZ: curve points "
+                      "with an edge field); default: when the plan shows a junction")
+    kind.add_argument("--single", action="store_true",
+                      help="one drift, even if the plan shows junctions")
     p.set_defaults(func=cmd_centerline)
 
     p = sub.add_parser("register", parents=[common, reading, configured],
@@ -491,11 +503,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration",
                    choices=["centerline", "icp_point", "icp_plane", "gicp", "ndt"],
                    help="registration method (default: centerline)")
-    p.add_argument("--network", action="store_true",
-                   help="the epochs are drift networks: measure every point against its branch "
-                   "(adds the uint16 field 'branch'; sections and danger zones per branch)")
+    kind = p.add_mutually_exclusive_group()
+    kind.add_argument("--network", action="store_true",
+                      help="the epochs are drift networks: measure every point against its "
+                      "branch (adds the uint16 field 'branch'; sections and danger zones per "
+                      "branch); default: when either epoch's plan shows a junction")
+    kind.add_argument("--single", action="store_true",
+                      help="one drift: refuse epochs whose plan shows junctions")
     p.add_argument("--no-drift-correction", action="store_true",
-                   help="with --network: no piecewise-rigid SLAM-drift correction")
+                   help="for a drift network: no piecewise-rigid SLAM-drift correction")
     p.add_argument("--force", action="store_true",
                    help="write the result even if a quality check fails; the outputs (summary, "
                    "LAS/PLY header) are then marked UNVERIFIED")

@@ -38,9 +38,8 @@ from .quality import (
     topology_checks,
 )
 
-__all__ = ["detect", "detect_network", "register_epochs", "check_epochs", "Result",
-           "NetworkResult", "RegisteredPair",
-           "OUTPUT_FIELDS"]
+__all__ = ["detect", "detect_network", "register_epochs", "check_epochs", "is_network",
+           "Result", "NetworkResult", "RegisteredPair", "OUTPUT_FIELDS"]
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +71,22 @@ def check_epochs(ref: Cloud, cmp: Cloud) -> None:
             f"the epochs differ in scale by about x{ratio:.0f} (section spread {sr:.3g} vs "
             f"{sc:.3g}); are both in metres?"
         )
+
+
+def is_network(clouds: Any, config: Config | None = None) -> bool:
+    """True if any of ``clouds`` is a drift network: the skeleton of its plan footprint has
+    a junction (:func:`~tunneldef.centerline.skeleton.plan_topology`, on at most 2 M points:
+    a few seconds). How ``tunneldef detect`` and the plugin choose between :func:`detect`
+    and :func:`detect_network` unless told."""
+    from .centerline.skeleton import plan_topology
+
+    nc = (config or Config()).network
+    for cloud in clouds:
+        topo = plan_topology(cloud.xyz, nc)
+        if topo.junctions > 0:
+            log.info("%s: measuring as a drift network", topo.describe())
+            return True
+    return False
 
 
 @dataclass

@@ -47,12 +47,10 @@ OPTIONAL_FIELDS = ("significant", "lod95", "shell", "surface", "class", "branch"
 
 def is_network(clouds: Any, config: Any = None) -> bool:
     """True if any of ``clouds`` (core :class:`~tunneldef.cloud.Cloud`) is a drift network:
-    its plan footprint's skeleton has a junction (a few seconds per million points)."""
-    from tunneldef.centerline.skeleton import plan_topology
-    from tunneldef.config import Config
+    the core's :func:`tunneldef.pipeline.is_network`."""
+    from tunneldef.pipeline import is_network as core_is_network
 
-    nc = (config or Config()).network
-    return any(plan_topology(c.xyz, nc).junctions > 0 for c in clouds)
+    return core_is_network(clouds, config)
 
 
 def _wants_network(network: str, clouds: Any, config: Any) -> bool:
