@@ -228,14 +228,17 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                f"its noise (best shift {check.coarse_shift:+.2f} m, equally good within "
                f"{check.coarse_spread:.2f} m)"),
         _check("registration.axial_residual",
-               _remaining_slide(check.fine_shift, check.wide_shift),
+               _remaining_slide(check.fine_shift, check.wide_shift,
+                                *check.narrow_shifts),
                qc.max_axial_residual, "<=", "m",
                "an independent point-to-plane fit at both normal scales finds the compared "
                "epoch off along the tunnel; the surfaces that fix the position are too weak "
                "for the noise (denser or less noisy scans, or a stretch with a chamber)",
                f"remaining slide {check.fine_shift:+.4f} m (normals over 0.15 m) and "
-               f"{check.wide_shift:+.4f} m (0.3 m); the larger of the two (their "
-               f"disagreement: {check.scale_disagreement:.2f} sigma)"),
+               f"{check.wide_shift:+.4f} m (0.3 m); with a 5 cm kernel "
+               + ", ".join(f"{v:+.4f} m" for v in check.narrow_shifts)
+               + f"; the largest (fine/wide disagreement: {check.scale_disagreement:.2f} "
+               "sigma)"),
         _check("registration.axial_convergence", check.axial_spread,
                qc.max_axial_spread, "<=", "m",
                "started 2 cm either side of the registered position, the point-to-plane slide "
@@ -264,11 +267,11 @@ def _mm(v: float) -> str:
     return f"{1000 * v:+.1f} mm" if np.isfinite(v) else "nowhere (nothing to hold on to)"
 
 
-def _remaining_slide(fine: float, wide: float) -> float:
-    """The larger along-axis slide either normal scale still finds from the registered pose
-    (NaN when both are missing). The larger, not the one they agree on: when the two scales
-    disagree, the position is known no better than their spread."""
-    v = [abs(x) for x in (fine, wide) if np.isfinite(x)]
+def _remaining_slide(*slides: float) -> float:
+    """The largest along-axis slide any of the readings (normal scales, kernels) still finds
+    from the registered pose (NaN when all are missing). The largest, not the one they agree
+    on: when they disagree, the position is known no better than their spread."""
+    v = [abs(x) for x in slides if np.isfinite(x)]
     return float(max(v)) if v else np.nan
 
 

@@ -213,6 +213,7 @@ def fine_shift(
     kernels: tuple[float, ...] = (0.2, 0.1, 0.05),
     iterations: int = 12,
     tree: cKDTree | None = None,
+    noise_floor: bool = True,
 ) -> AxialShift:
     """Along-axis shift by one-degree-of-freedom robust point-to-plane alignment.
 
@@ -224,7 +225,9 @@ def fine_shift(
     the least-squares value ``sigma_r / sqrt(sum(w (n . t)^2))`` and a delete-one-block
     jackknife over chainage blocks (features are few, errors within a block correlated).
     No kernel after the first is narrower than :func:`noise_kernel` of the first stage's
-    residuals, so noisy scans keep an unbiased kernel.
+    residuals, so noisy scans keep an unbiased kernel (``noise_floor=False``: the kernels as
+    given; the registration check reads the slide both ways, since either can be the one
+    that sees a misplacement).
 
     Parameters
     ----------
@@ -269,7 +272,7 @@ def fine_shift(
             delta += float(np.clip(step, -kernel / 2, kernel / 2))
             if abs(step) < 1e-5:
                 break
-        if stage == 0:
+        if stage == 0 and noise_floor:
             scale = noise_kernel(r)
     sw = float(w.sum())
     sigma_r = np.sqrt(float(np.sum(w * r * r)) / max(sw - 1, 1.0))

@@ -503,10 +503,11 @@ def axial_correction(
     cmp_xyz: np.ndarray,
     ref_cl: Centerline,
     max_points: int = _AXIAL_MAX_POINTS,
+    noise_floor: bool = True,
 ) -> tuple[np.ndarray, AxialShift]:
     """A last along-axis correction (4, 4) and its uncertainty, by the 1-DOF point-to-plane
     alignment of :func:`.axial.fine_shift` (compared points already in place; at most
-    ``max_points`` of them, at random, are used)."""
+    ``max_points`` of them, at random, are used; ``noise_floor`` as there)."""
     pm = ref_cl.project(cmp_xyz)
     tan = ref_cl.frame_at(pm.chainage)[0]
     sel = _axial_sample(pm.chainage, ref_cl.length, None, max_points)
@@ -516,6 +517,7 @@ def axial_correction(
         cmp_xyz[sel],
         tan[sel],
         blocks=np.floor(pm.chainage[sel]).astype(np.int64),
+        noise_floor=noise_floor,
     )
     t = tan[sel].mean(axis=0)
     m = _translation(shift.shift * t / np.linalg.norm(t))
