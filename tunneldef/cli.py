@@ -278,6 +278,13 @@ def cmd_register(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_kind(p: argparse.ArgumentParser, network_help: str, single_help: str) -> None:
+    """``--network`` / ``--single``: which stages, when the plan should not decide."""
+    kind = p.add_mutually_exclusive_group()
+    kind.add_argument("--network", action="store_true", help=network_help)
+    kind.add_argument("--single", action="store_true", help=single_help)
+
+
 def _as_network(args: argparse.Namespace, clouds: list[Any], config: Any) -> bool:
     """``--network``, ``--single``, or else whether the plan of any epoch shows a junction."""
     from .pipeline import is_network
@@ -460,13 +467,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True,
                    help="centerline.csv (slices), .json, or .ply/.las/.laz (curve points)")
     p.add_argument("--plots", metavar="DIR", help="write diagnostic figures into DIR")
-    kind = p.add_mutually_exclusive_group()
-    kind.add_argument("--network", action="store_true",
-                      help="a drift network: write the graph of edges and junctions (JSON: "
-                      "nodes and edges; CSV: slices with their edge; PLY/LAS/LAZ: curve points "
-                      "with an edge field); default: when the plan shows a junction")
-    kind.add_argument("--single", action="store_true",
-                      help="one drift, even if the plan shows junctions")
+    _add_kind(p, "a drift network: write the graph of edges and junctions (JSON: nodes and "
+              "edges; CSV: slices with their edge; PLY/LAS/LAZ: curve points with an edge "
+              "field); default: when the plan shows a junction",
+              "one drift, even if the plan shows junctions")
     p.set_defaults(func=cmd_centerline)
 
     p = sub.add_parser("register", parents=[common, reading, configured],
@@ -503,13 +507,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration",
                    choices=["centerline", "icp_point", "icp_plane", "gicp", "ndt"],
                    help="registration method (default: centerline)")
-    kind = p.add_mutually_exclusive_group()
-    kind.add_argument("--network", action="store_true",
-                      help="the epochs are drift networks: measure every point against its "
-                      "branch (adds the uint16 field 'branch'; sections and danger zones per "
-                      "branch); default: when either epoch's plan shows a junction")
-    kind.add_argument("--single", action="store_true",
-                      help="one drift: refuse epochs whose plan shows junctions")
+    _add_kind(p, "the epochs are drift networks: measure every point against its branch "
+              "(adds the uint16 field 'branch'; sections and danger zones per branch); "
+              "default: when either epoch's plan shows a junction",
+              "one drift: refuse epochs whose plan shows junctions")
     p.add_argument("--no-drift-correction", action="store_true",
                    help="for a drift network: no piecewise-rigid SLAM-drift correction")
     p.add_argument("--force", action="store_true",

@@ -223,10 +223,6 @@ def write_pair(
     hosts. A roof sag of 50 mm at chainage 10 m; a side chamber so the position along the axis
     is determined. ``deformations`` (``tunneldef.synth.DeformationSpec``) replace the sag.
     """
-    import numpy as np
-
-    from tunneldef.cloud import Cloud
-    from tunneldef.io import write
     from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
 
     pair = make_pair(
@@ -238,14 +234,7 @@ def write_pair(
             seed=seed,
         )
     )
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for name, cloud in (("ref", pair.ref), ("cmp", pair.cmp)):
-        xyz = np.round((cloud.xyz + SURVEY_OFFSET) * 2**10) / 2**10
-        path = out_dir / f"{name}.ply"
-        write(path, Cloud(xyz))
-        paths.append(path)
-    return paths[0], paths[1]
+    return _write_survey(out_dir, pair)
 
 
 def write_network_pair(out_dir: Path, *, seed: int = 3, density: float = 150.0):
@@ -253,11 +242,8 @@ def write_network_pair(out_dir: Path, *, seed: int = 3, density: float = 150.0):
     end: ``test_network.small_network``; a 19 mm wall bulge on the cross-cut), about 150 k
     points per epoch, in survey coordinates on the 2**-10 m grid, as ``ref.ply`` and
     ``cmp.ply``; returns ``(ref_path, cmp_path)``."""
-    import numpy as np
     from test_network import small_network
 
-    from tunneldef.cloud import Cloud
-    from tunneldef.io import write
     from tunneldef.synth import DeformationSpec
     from tunneldef.synth.network import BranchDeformation, make_network_pair
 
@@ -265,6 +251,17 @@ def write_network_pair(out_dir: Path, *, seed: int = 3, density: float = 150.0):
     pair = make_network_pair(network=small_network(), deformations=(bulge,), ref_coverage=None,
                              cmp_coverage=None, density=density, drift=0.0, equipment=False,
                              seed=seed, yaw_deg=30.0)
+    return _write_survey(out_dir, pair)
+
+
+def _write_survey(out_dir: Path, pair):
+    """Both epochs of ``pair`` in survey coordinates on the 2**-10 m grid (CloudCompare's
+    float32 local coordinates then hold them exactly), as ``ref.ply`` and ``cmp.ply``."""
+    import numpy as np
+
+    from tunneldef.cloud import Cloud
+    from tunneldef.io import write
+
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for name, cloud in (("ref", pair.ref), ("cmp", pair.cmp)):
