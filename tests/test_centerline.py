@@ -314,6 +314,35 @@ def test_roof_floor_missing_roof_is_reported() -> None:
     assert "only one significant" in rf.reason
 
 
+def test_a_roof_read_on_a_clump_inside_the_section_is_refused() -> None:
+    """A terrestrial scanner's far roof holds fewer points than a clump on a wall near the
+    scanner: the clump wins the density, and the slice would be 0.3 m low. The true roof's
+    sparse points span the width above that line, so the slice is refused; the same section
+    with the clump but a roof holding its share is read as before."""
+    rng = np.random.default_rng(RNG_SEED)
+    n_roof = 30  # 2 % of the slice: below the 5 % share a peak needs
+    floor_lat = rng.uniform(-0.85, 0.85, 900)
+    floor_z = rng.normal(-0.88, 0.01, 900)
+    walls_z = rng.uniform(-0.88, 0.85, 400)
+    walls_lat = np.where(rng.random(400) < 0.5, -0.85, 0.85) + rng.normal(0, 0.01, 400)
+    clump_lat, clump_z = rng.normal(0.75, 0.04, 160), rng.normal(0.58, 0.02, 160)
+
+    def slice_with(roof_points: int) -> tuple[np.ndarray, np.ndarray]:
+        lat = np.concatenate([floor_lat, walls_lat, clump_lat,
+                              np.linspace(-0.8, 0.8, roof_points)])
+        z = np.concatenate([floor_z, walls_z, clump_z, rng.normal(0.85, 0.01, roof_points)])
+        return z, lat
+
+    z, lat = slice_with(n_roof)
+    plain = roof_floor_lines(z)
+    assert plain.ok and plain.roof == pytest.approx(0.58, abs=0.02)  # the clump, silently
+    judged = roof_floor_lines(z, lateral=lat)
+    assert not judged.ok and judged.reason.startswith("roof read inside the section")
+    z, lat = slice_with(400)
+    kept = roof_floor_lines(z, lateral=lat)
+    assert kept.ok and kept.roof == pytest.approx(0.85, abs=0.01)
+
+
 def _wall_slice(rng: np.random.Generator, *, left: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Top view (u along, v lateral) of a wall band: walls at +-2.9 m, a 0.1 m pipe 5 cm off
     the left wall, a conveyor leg near the right wall, a few outliers."""

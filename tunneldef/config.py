@@ -103,6 +103,12 @@ class CenterlineConfig:
                                "peak itself, as the paper")
     min_peak_share: float = _p(0.05, "ours: a roof/floor peak must hold >= 5% of the slice's "
                                      "points within +-kde_bandwidth (noise, cables do not)")
+    beyond_gap: float = _p(0.15, "ours: points this far beyond a roof/floor line (5 sigma of "
+                                 "3 cm noise) belong to a surface beyond it, m")
+    max_beyond_cover: float = _p(0.6, "ours: a slice whose points beyond its roof or floor "
+                                      "line span >= 60% of its width read that line inside the "
+                                      "section (a clump on a wall, a support) and is not used; "
+                                      "1 turns this off")
     grid_cell: float = _p(0.02, "ours: pixel of the 2-D linear-kernel density image, m")
     wall_kernel: float = _p(0.04, "ours: half-width of the linear kernel (paper eq. 3) across "
                                   "the axis, m; along it a quarter of the slice thickness")

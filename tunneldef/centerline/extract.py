@@ -285,6 +285,9 @@ def analyse_slice(
         bandwidth=c.kde_bandwidth,
         min_share=c.min_peak_share,
         refine_bandwidth=c.refine_bandwidth,
+        lateral=local[:, 1] if c.max_beyond_cover < 1.0 else None,
+        beyond_gap=c.beyond_gap,
+        max_beyond_cover=c.max_beyond_cover,
     )
     if not rf.ok:
         return rf, None, np.zeros(len(local), dtype=bool)

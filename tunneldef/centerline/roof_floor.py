@@ -30,6 +30,7 @@ __all__ = [
     "roof_floor_lines",
     "kernel_density_1d",
     "refine_peak",
+    "cover_beyond",
     "Crown",
     "crown_height",
     "estimate_roll",
@@ -126,12 +127,40 @@ def refine_peak(values: np.ndarray, centre: float, *, window: float, bandwidth: 
     return float(grid[i])
 
 
+def cover_beyond(
+    z: np.ndarray, lateral: np.ndarray, floor: float, roof: float, *, gap: float,
+    cell: float = 0.05,
+) -> tuple[float, float]:
+    """Share of the section's width holding points more than ``gap`` below the floor line and
+    more than ``gap`` above the roof line.
+
+    The width is the 1-99 % range of ``lateral`` cut into ``cell``-wide bins; a bin counts
+    when it holds at least one such point. Noise, outliers and a drain cover a few bins; the
+    true floor or roof, where the line was read on something inside the section (a clump on
+    a wall, a support, a pipe), covers most of them, however few points it holds.
+
+    Returns
+    -------
+    below, above : float
+        Covered shares, 0 to 1.
+    """
+    lo, hi = np.quantile(lateral, [0.01, 0.99])
+    nbins = max(int(np.ceil((hi - lo) / cell)), 1)
+    bins = np.clip(((lateral - lo) / cell).astype(np.int64), 0, nbins - 1)
+    below = np.unique(bins[z < floor - gap]).size / nbins
+    above = np.unique(bins[z > roof + gap]).size / nbins
+    return below, above
+
+
 def roof_floor_lines(
     z: np.ndarray,
     *,
     bandwidth: float = 0.1,
     min_share: float = 0.05,
     refine_bandwidth: float | None = 0.02,
+    lateral: np.ndarray | None = None,
+    beyond_gap: float = 0.15,
+    max_beyond_cover: float = 0.6,
 ) -> RoofFloor:
     """Floor and roof heights of one slice: first and last significant density peaks of z.
 
@@ -145,6 +174,14 @@ def roof_floor_lines(
         Smallest share of the slice's points within ``+-bandwidth`` of a peak for it to count.
     refine_bandwidth : float or None
         Narrow kernel used to refine each line (None: keep the wide window's peak).
+    lateral : ndarray, shape (N,), optional
+        Lateral coordinate of the points, metres. When given, a line with points more than
+        ``beyond_gap`` beyond it over ``max_beyond_cover`` of the section's width
+        (:func:`cover_beyond`) was read inside the section and the slice gets a reason: a
+        terrestrial scanner's far roof can hold fewer points than a clump on a wall close to
+        the scanner, and such a slice would be 0.2-0.3 m too low.
+    beyond_gap, max_beyond_cover : float
+        See ``lateral`` (metres, share of the width).
 
     Returns
     -------
@@ -176,7 +213,16 @@ def roof_floor_lines(
     if refine_bandwidth:
         floor = refine_peak(z, floor, window=bandwidth, bandwidth=refine_bandwidth)
         roof = refine_peak(z, roof, window=bandwidth, bandwidth=refine_bandwidth)
-    return RoofFloor(floor, roof, KDE_PEAK, "", grid, dens, peaks, shares)
+    reason = ""
+    if lateral is not None:
+        below, above = cover_beyond(z, np.asarray(lateral, dtype=np.float64), floor, roof,
+                                    gap=beyond_gap)
+        for name, cover, where in (("roof", above, "above"), ("floor", below, "below")):
+            if cover >= max_beyond_cover:
+                reason = (f"{name} read inside the section: points {beyond_gap:.2f} m {where} "
+                          f"it span {100 * cover:.0f} % of the width")
+                break
+    return RoofFloor(floor, roof, KDE_PEAK, reason, grid, dens, peaks, shares)
 
 
 @dataclass(frozen=True)
