@@ -116,6 +116,22 @@ def test_graph_json_ready(result) -> None:  # noqa: ANN001
     assert all(len(n["edges"]) == len(n["chainages_m"]) for n in d["nodes"])
 
 
+def test_each_edge_reports_its_drift_size(pair, result) -> None:  # noqa: ANN001
+    """Every edge of the graph JSON gives its drift's width and height (medians of its fitted
+    slices); here within 1 cm of the design sections (4.0 x 3.0 m rectangle, 3.6 x 3.0 m
+    arch, 3.5 x 3.0 m rectangle)."""
+    d = json.loads(json.dumps(result.network.to_dict(curves=False)))
+    truth = pair.truth.ref
+    pr = result.network.project(pair.ref.xyz, max_distance=5.0)
+    shell = ~truth.stray & (truth.label == 0) & ~pr.junction
+    for e in d["edges"]:
+        b = pair.truth.branches[int(np.bincount(truth.branch[shell & (pr.branch == e["id"])])
+                                    .argmax())]
+        assert e["fitted_slices"] >= 10
+        assert abs(e["width_m"] - b.spec.section.width) < 0.01, (e, b.spec.section)
+        assert abs(e["height_m"] - b.spec.section.height) < 0.01, (e, b.spec.section)
+
+
 def test_a_far_stray_point_creates_no_edge_and_no_huge_grid() -> None:
     rng = np.random.default_rng(0)
     x = rng.uniform([0, -2, -1.5], [30, 2, 1.5], size=(20000, 3))

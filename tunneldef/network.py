@@ -85,6 +85,15 @@ class NetworkEdge:
         """Length of the edge's curve, metres."""
         return self.centerline.length
 
+    def section_size(self) -> tuple[float, float, int]:
+        """Median width and height of the edge's fitted slices, metres, and their count
+        (NaN, NaN, 0 when none was fitted): the drift's size as a surveyor quotes it."""
+        ok = [r for r in self.slices if getattr(r, "ok", False)]
+        if not ok:
+            return np.nan, np.nan, 0
+        return (float(np.median([r.width for r in ok])),
+                float(np.median([r.height for r in ok])), len(ok))
+
     def in_zone(self, chainage: np.ndarray) -> np.ndarray:
         """True where a chainage lies in one of the edge's junction zones."""
         s = np.asarray(chainage, dtype=np.float64)
@@ -102,6 +111,9 @@ class NetworkEdge:
             "nodes": list(self.nodes),
             "junction_zones_m": [list(z) for z in self.zones],
         }
+        width, height, fitted = self.section_size()
+        if fitted:
+            out.update({"width_m": width, "height_m": height, "fitted_slices": fitted})
         if curve:
             out["centerline"] = self.centerline.to_dict()
         return out

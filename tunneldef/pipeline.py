@@ -423,8 +423,11 @@ class NetworkResult:
         edges = []
         for e in self.ref_network.edges:
             v = d[shell & (branch == e.id) & np.isfinite(d)]
+            width, height, _ = e.section_size()
             edges.append({
                 "branch": e.id, "name": e.name, "length_m": e.length,
+                "width_m": width if np.isfinite(width) else None,
+                "height_m": height if np.isfinite(height) else None,
                 "common_length_m": self.common_length.get(e.id, 0.0),
                 "junction_zones_m": [list(z) for z in e.zones],
                 "shell_points": int(v.size),
