@@ -168,6 +168,10 @@ def test_bad_inputs_are_one_line_errors() -> None:
         with pytest.raises(TunnelDefError) as info:
             detect(tube, Cloud(bad))
         assert "\n" not in str(info.value)
+        # the message names the epoch that is no tunnel
+        assert str(info.value).startswith("compared epoch: "), str(info.value)
+        with pytest.raises(TunnelDefError, match="^reference epoch: "):
+            detect(Cloud(bad), tube)
         with pytest.raises(NotATunnelError):
             extract_centerline(bad)
 

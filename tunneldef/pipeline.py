@@ -15,6 +15,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +26,7 @@ from . import __version__
 from .cloud import Cloud, check_points
 from .config import Config
 from .curve import Centerline
-from .errors import EpochMismatchError, RegistrationError
+from .errors import EpochMismatchError, NotATunnelError, RegistrationError
 from .frame import principal_frame
 from .progress import ProgressCallback, notify, under
 from .quality import (
@@ -61,7 +63,10 @@ def check_epochs(ref: Cloud, cmp: Cloud) -> None:
     """
     check_points(ref.xyz, name="reference", min_points=_MIN_POINTS)
     check_points(cmp.xyz, name="compared", min_points=_MIN_POINTS)
-    fr, fc = principal_frame(ref.xyz), principal_frame(cmp.xyz)
+    with epoch_named("reference"):
+        fr = principal_frame(ref.xyz)
+    with epoch_named("compared"):
+        fc = principal_frame(cmp.xyz)
     # the spread across the axis is the section size, independent of length and heading
     sr = float(np.sqrt(fr.variances[1] + fr.variances[2]))
     sc = float(np.sqrt(fc.variances[1] + fc.variances[2]))
@@ -73,6 +78,19 @@ def check_epochs(ref: Cloud, cmp: Cloud) -> None:
         )
 
 
+@contextmanager
+def epoch_named(name: str | None) -> Iterator[None]:
+    """Name the epoch in a not-a-tunnel error raised inside (``reference epoch: the cloud is
+    not elongated ...``): the stages see one cloud and cannot tell which file it came from.
+    ``None`` (a single cloud) leaves the error as it is."""
+    try:
+        yield
+    except NotATunnelError as exc:
+        if name is None or str(exc).startswith(f"{name} epoch"):
+            raise
+        raise type(exc)(f"{name} epoch: {exc}") from exc
+
+
 def is_network(clouds: Any, config: Config | None = None) -> bool:
     """True if any of ``clouds`` is a drift network: the skeleton of its plan footprint has
     a junction (:func:`~tunneldef.centerline.skeleton.plan_topology`, on at most 2 M points:
@@ -81,8 +99,11 @@ def is_network(clouds: Any, config: Config | None = None) -> bool:
     from .centerline.skeleton import plan_topology
 
     nc = (config or Config()).network
-    for cloud in clouds:
-        topo = plan_topology(cloud.xyz, nc)
+    clouds = list(clouds)
+    names = ("reference", "compared") if len(clouds) == 2 else (None,) * len(clouds)
+    for name, cloud in zip(names, clouds, strict=True):
+        with epoch_named(name):
+            topo = plan_topology(cloud.xyz, nc)
         if topo.junctions > 0:
             log.info("%s: measuring as a drift network", topo.describe())
             return True
@@ -121,14 +142,19 @@ def register_epochs(
     # first, is each epoch one drift? (a network's cross-cuts are no sections of one tube)
     notify(progress, "plan topology", 0.0)
     for name, cloud in (("reference", ref), ("compared", cmp)):
-        topo = plan_topology(cloud.xyz, config.network)
+        with epoch_named(name):
+            topo = plan_topology(cloud.xyz, config.network)
         log.info("%s epoch: %s", name, topo.describe())
         report.add(topology_checks(topo, config.quality, name))
     notify(progress, "plan topology", 1.0)
     lines = {"slicing": config.slicing, "settings": config.centerline}
-    ref_ex = extract_centerline(ref.xyz, **lines, progress=under(progress, "reference centreline"))
+    with epoch_named("reference"):
+        ref_ex = extract_centerline(ref.xyz, **lines,
+                                    progress=under(progress, "reference centreline"))
     report.add(centerline_checks(ref_ex, config.quality, "reference"))
-    cmp_ex = extract_centerline(cmp.xyz, **lines, progress=under(progress, "compared centreline"))
+    with epoch_named("compared"):
+        cmp_ex = extract_centerline(cmp.xyz, **lines,
+                                    progress=under(progress, "compared centreline"))
     report.add(centerline_checks(cmp_ex, config.quality, "compared"))
     _check_section_sizes(ref_ex, cmp_ex)
     reg = register(ref.xyz, cmp.xyz, ref_ex.centerline, cmp_ex.centerline,
@@ -491,10 +517,12 @@ def detect_network(
     check_epochs(ref, cmp)
     lines = {"slicing": config.slicing, "settings": config.centerline,
              "network": config.network}
-    ref_net = extract_network(ref.xyz, **lines, progress=under(progress, "reference network"))
+    with epoch_named("reference"):
+        ref_net = extract_network(ref.xyz, **lines, progress=under(progress, "reference network"))
     for e in ref_net.network.edges:
         report.add(edge_checks(e, qc, "reference", JUNCTION))
-    cmp_net = extract_network(cmp.xyz, **lines, progress=under(progress, "compared network"))
+    with epoch_named("compared"):
+        cmp_net = extract_network(cmp.xyz, **lines, progress=under(progress, "compared network"))
     for e in cmp_net.network.edges:
         report.add(edge_checks(e, qc, "compared", JUNCTION))
     timings["centrelines"] = time.perf_counter() - t0
