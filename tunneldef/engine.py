@@ -53,8 +53,9 @@ def release_memory() -> None:
     A tile's arrays are freed when its task ends, but glibc keeps the pages in its arenas,
     one per thread that allocated, so the process grows tile after tile although its live
     data do not; Dask's own advice for workers ("memory not released back to the OS") is
-    this call. Dask's worker processes trim by themselves; the local scheduler calls this
-    after every task.
+    this call. Worker processes started by a Dask nanny trim by themselves (it sets
+    ``MALLOC_TRIM_THRESHOLD_``, ``distributed.nanny.pre-spawn-environ``); the local scheduler
+    calls this after every task.
     """
     libc = _glibc()
     if libc is not None:
