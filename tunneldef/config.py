@@ -137,9 +137,8 @@ class CenterlineConfig:
                                       "midpoints by cm over 1-8 m, which a design axis does "
                                       "not do; a stiff curve averages them out")
     max_misfit: float = _p(0.01, "ours: the stiffest curve (8, 4, then 2 m) whose centres' "
-                                 "running mean over its own spacing stays within this of "
-                                 "it is kept; a bend it cuts or rings across shows as such a "
-                                 "misfit, m")
+                                 "running mean over max_ctrl_spacing stays within this of it "
+                                 "is kept; a bend it cuts shows as such a misfit, m")
     sample_step: float = _p(0.05, "ours: spacing of centreline samples, m")
     max_iterations: int = _p(3, "ours: re-slicing passes normal to the curve (curved tunnels)")
     converge_tol: float = _p(0.01, "ours: stop re-slicing when the curve moves less (p95), "

@@ -446,12 +446,10 @@ def fit_stiffest(
     a control point every 2 m follows those waves; on random synthetic pairs its p95
     distance from the design axis was 1.2-3.6 x that of a curve with one every 8 m (every
     one of 104 epochs better with 8 m). A stiff curve cuts tight bends, though (15 m radius
-    fillets: its centres' running mean 15 mm off), and one a little less stiff rings across
-    a bend that follows a long straight (4 m spacing: 12 mm p95 off the axis, 20-30 mm at
-    worst, in waves that a running mean over 8 m averages away). So the spacings
-    ``max_spacing``, ``max_spacing / 2``, ... down to ``min_spacing`` are tried, stiffest
-    first, and the first whose :func:`systematic_misfit` over a window of its own spacing is
-    within ``max_misfit`` is kept; else the ``min_spacing`` curve.
+    fillets: its centres' running mean 15 mm off). So the spacings ``max_spacing``,
+    ``max_spacing / 2``, ... down to ``min_spacing`` are tried, stiffest first, and the
+    first whose :func:`systematic_misfit` (window ``max_spacing``) is within ``max_misfit``
+    is kept; else the ``min_spacing`` curve.
 
     Parameters
     ----------
@@ -495,7 +493,7 @@ def fit_stiffest(
             # a stiff curve can shed a bend's centres as outliers (its reweighting) and then
             # swing wide over the span it lost: not a candidate
             continue
-        misfit = systematic_misfit(cl, q, st, spacing)
+        misfit = systematic_misfit(cl, q, st, max_spacing)
         if misfit <= max_misfit:
             chosen = (cl, fit, spacing)
             break
