@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from tunneldef.centerline import CenterlineResult, extract_centerline
+from tunneldef.centerline.extract import reference_width
 from tunneldef.centerline.fit import fit_centerline, fit_cubic_bspline, fit_line, fit_nurbs
 from tunneldef.centerline.roof_floor import roof_floor_lines
 from tunneldef.centerline.slicing import slice_along_axis, slice_stations
@@ -458,3 +459,22 @@ def test_crown_height_lifts_an_arch_peak_to_its_crown_and_leaves_a_flat_roof() -
     # a crown below the peak, or a parabola opening upwards, lifts nothing
     assert Crown(1.38, -0.01, 0.02).lift(1.40) == 0.0
     assert Crown(1.45, 0.01, 0.02).lift(1.40) == 0.0
+
+
+def test_the_reference_width_is_the_narrowest_width_most_slices_agree_with() -> None:
+    """Widths of a 12 m dead end off a ramp (±2 cm noise): ten true slices at 4.0 m, then the
+    slices cutting the face read 1.3-4.5 m. A 30th percentile (3.68 m) called every true slice
+    a chamber; the reference must be the drift's 4.0 m."""
+    face = [4.01, 4.01, 4.0, 4.01, 3.99, 4.03, 4.0, 4.01, 4.02, 4.01, 2.0, 4.5, 3.2, 3.36,
+            2.3, 1.27]
+    assert reference_width(np.array(face), 0.3) == pytest.approx(4.01, abs=0.01)
+    # a clean drift: its median width
+    rng = np.random.default_rng(0)
+    clean = 5.0 + 0.02 * rng.standard_normal(60)
+    assert reference_width(clean, 0.3) == pytest.approx(np.median(clean), abs=1e-9)
+    # a chamber holding 60 % of the window: still the drift (chambers only ever widen)
+    chamber = np.r_[np.full(24, 5.0), np.full(36, 8.0)]
+    assert reference_width(chamber, 0.3) == pytest.approx(5.0)
+    # no agreement at all: the low quantile, as before
+    spread = np.linspace(2.0, 8.0, 13)
+    assert reference_width(spread, 0.3) == pytest.approx(np.percentile(spread, 30))

@@ -117,8 +117,9 @@ class CenterlineConfig:
                                     "equipment and pipes under the roof stay out)")
     max_wall_angle_deg: float = _p(20.0, "ours: Hough lines within 20 deg of the axis only")
     hough_peak_ratio: float = _p(0.3, "ours: Hough peaks below 30% of the strongest are ignored")
-    max_width_jump: float = _p(0.3, "ours: a slice wider than its neighbours' 30th percentile "
-                                    "width by more than this is a chamber/niche/junction and is "
+    max_width_jump: float = _p(0.3, "ours: a slice wider than its neighbours' reference "
+                                    "width (the narrowest that 30 % of them agree with, within "
+                                    "this) by more than this is a chamber/niche/junction and is "
                                     "rejected (narrower: inconsistent walls), m")
     narrow_sigmas: float = _p(3.0, "ours: a slice narrower than its neighbours' median width, "
                                    "or higher or lower than their median height, by more than "

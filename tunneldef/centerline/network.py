@@ -30,6 +30,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -44,6 +45,7 @@ from ..progress import ProgressCallback, notify
 from .extract import (
     SliceRecord,
     _reject_jumps,
+    _roll,
     analyse_slice,
     record_lines,
     rejection_summary,
@@ -51,6 +53,7 @@ from .extract import (
 )
 from .fit import fit_stiffest
 from .plan import PlanGrid
+from .roof_floor import roll_profile
 from .skeleton import SkeletonGraph, plan_graph
 from .slicing import slice_along_axis
 from .walls import estimate_wall_leans
@@ -61,6 +64,9 @@ logger = logging.getLogger(__name__)
 
 JUNCTION = "junction"
 EXTENT_WALLS = "section_extent"
+#: A free end whose last half-width turns more than this against the half-width before it
+#: is a medial axis' fork to a dead end's corners, degrees.
+_FORK_DEG = 15.0
 #: Fewest good slices for an edge; fewer than ``min_slices`` of them give a straight line.
 MIN_LINE_SLICES = 3
 
@@ -85,6 +91,22 @@ class NetworkResult:
     def table(self) -> list[dict]:
         """One dict per slice of every edge (:meth:`SliceRecord.row` plus ``edge``)."""
         return [{"edge": e.id, **r.row()} for e in self.network.edges for r in e.slices]
+
+
+class _Shape(NamedTuple):
+    """An edge's section roll along it (:func:`roll_profile`) and its walls' leans."""
+
+    at: np.ndarray  # (K, 3) where along the edge the roll was read (world)
+    roll: np.ndarray  # (K,) radians
+    leans: tuple[float, float]
+
+    def roll_at(self, axis: Centerline, chainage: np.ndarray) -> np.ndarray | float:
+        """The roll at ``chainage`` along ``axis`` (any pass's curve of the edge)."""
+        if not np.any(self.roll):
+            return 0.0
+        s = axis.project(self.at).chainage
+        order = np.argsort(s)
+        return np.interp(chainage, s[order], self.roll[order])
 
 
 @dataclass
@@ -125,6 +147,43 @@ def _axis_from_path(path: np.ndarray, grid: PlanGrid) -> Centerline:
     return Centerline.from_polyline(np.column_stack([xy, z]), step=0.1)
 
 
+def _trim_free_ends(
+    path: np.ndarray, free: tuple[bool, ...], cells: float
+) -> tuple[np.ndarray, tuple[float, float]]:
+    """The skeleton path without its last ``cells`` (a half-width) at each free end, and the
+    length cut at either end (cells).
+
+    A medial axis ends a half-width short of a dead end's face, forking to its corners; pruning
+    keeps one fork, and slices along it cut the drift obliquely (their widths read 2.5 m in a
+    4 m drift, enough of them to look like the drift's own width). Where the end's last
+    stretch turns more than ``_FORK_DEG`` against the one before, the axis is drawn on
+    straight along its tangent instead. At least half the path is kept."""
+    if len(path) < 4 or not any(free):
+        return path, (0.0, 0.0)
+    xy = path.astype(np.float64)
+    seg = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    cut = min(cells, 0.25 * s[-1])
+
+    def forks(at: float, away: float) -> bool:
+        # the end's last stretch turns against the stretch before it (a fork to a corner)
+        a, b, c = (np.array([np.interp(t, s, xy[:, 0]), np.interp(t, s, xy[:, 1])])
+                   for t in (at + 2 * away, at + away, at))
+        u, v = b - a, c - b
+        cos = float(u @ v) / max(float(np.linalg.norm(u) * np.linalg.norm(v)), 1e-12)
+        return cos < np.cos(np.radians(_FORK_DEG))
+
+    lo = cut if free[0] and forks(0.0, cut) else 0.0
+    hi = s[-1] - cut if len(free) > 1 and free[1] and forks(s[-1], -cut) else s[-1]
+    if lo == 0.0 and hi == s[-1]:
+        return path, (0.0, 0.0)
+    keep = (s >= lo) & (s <= hi)
+    if keep.sum() < 2:
+        return path, (0.0, 0.0)
+    kept = s[keep]
+    return path[keep], (float(kept[0]), float(s[-1] - kept[-1]))
+
+
 def _extent_walls(
     local: np.ndarray, floor: float, roof: float, c: CenterlineConfig, *, band: float = 0.05,
     min_points: int = 30,
@@ -161,16 +220,34 @@ def _slice_edge(
     tube: float,
     sl: SlicingConfig,
     c: CenterlineConfig,
-    leans: tuple[float, float] | None,
-) -> tuple[list[SliceRecord], tuple[float, float]]:
+    shape: _Shape | None,
+) -> tuple[list[SliceRecord], _Shape]:
+    """Slice one edge along ``axis`` and read every slice outside the junction ``zones``.
+
+    ``shape`` is the edge's section roll and wall leans (:func:`estimate_roll`,
+    :func:`estimate_wall_leans`, from the slices outside the zones), estimated when None:
+    a drift whose section is rolled (an unlevelled or tilted scan: a cross-cut at right angles
+    to the tilt's axis) has a floor and roof sloping across it, whose density peaks smear over
+    the slope and read the centre's height centimetres apart from slice to slice (3 degrees
+    across a 4.2 m drift: 4-6 cm p95); the slices are read levelled.
+    """
     pr = axis.project(pts)
     local = np.column_stack([pr.chainage, pr.lateral, pr.vertical])
     local = local[np.abs(pr.lateral) <= tube]
-    if leans is None:
+    if shape is None:
         outside = np.ones(len(local), dtype=bool)
         for a, b in zones:
             outside &= (local[:, 0] < a) | (local[:, 0] > b)
-        leans = estimate_wall_leans(local[outside], sl, c) if outside.sum() > 1000 else (0, 0)
+        enough = outside.sum() > 1000
+        st, ang = (roll_profile(local[outside], sl, c, c.neighbour_window) if enough
+                   else (np.zeros(0), np.zeros(0)))
+        shape = _Shape(axis.point_at(st), ang, (0.0, 0.0))
+        _roll(local, shape.roll_at(axis, local[:, 0]))
+        if enough:
+            shape = shape._replace(leans=estimate_wall_leans(local[outside], sl, c))
+    else:
+        _roll(local, shape.roll_at(axis, local[:, 0]))
+    leans = shape.leans
     records = []
     for s in slice_along_axis(local[:, 0], step=sl.step, thickness=sl.thickness):
         rec = SliceRecord(station=s.station, n_points=len(s.index))
@@ -200,11 +277,14 @@ def _slice_edge(
     if ok:
         st = np.array([r.station for r in ok])
         _, lat, ver = axis.frame_at(st)
-        cen = (axis.point_at(st) + (0.5 * np.array([r.left + r.right for r in ok]))[:, None] * lat
-               + (0.5 * np.array([r.floor + r.roof for r in ok]))[:, None] * ver)
+        mid = np.zeros((len(ok), 3))
+        mid[:, 1] = 0.5 * np.array([r.left + r.right for r in ok])
+        mid[:, 2] = 0.5 * np.array([r.floor + r.roof for r in ok])
+        _roll(mid, -shape.roll_at(axis, st))  # back to the axis' own frame
+        cen = axis.point_at(st) + mid[:, 1:2] * lat + mid[:, 2:3] * ver
         for r, p in zip(ok, cen, strict=True):
             r.centre = p
-    return records, leans
+    return records, shape
 
 
 def _fit_edge(
@@ -276,7 +356,7 @@ def _passes(
     """
     step = dataclasses.replace(sl, step=max(sl.step, 1.0)) if quick and e.axis.length >= 20.0 \
         else sl
-    leans = None
+    shape = None
     best: tuple[Centerline, list[SliceRecord], int] | None = None
     # the curve a full pass starts from counts as the previous one: a pass that moves it less
     # than converge_tol is the last
@@ -284,7 +364,7 @@ def _passes(
     for _ in range(1 if quick else max(c.max_iterations, 1)):
         at = [float(axis.project(v[None]).chainage[0]) for v in nodes]
         zones = [(s - (b - a) / 2, s + (b - a) / 2) for s, (a, b) in zip(at, zones, strict=True)]
-        records, leans = _slice_edge(p, axis, zones, e.tube, step, c, leans)
+        records, shape = _slice_edge(p, axis, zones, e.tube, step, c, shape)
         n_ok = sum(r.ok for r in records)
         try:
             curve = _fit_edge(records, c, name, axis)
@@ -292,7 +372,7 @@ def _passes(
             if best is None and axis is not e.axis:
                 # a pass along a fitted curve failed: once more along the skeleton's axis
                 axis = e.axis
-                records, leans = _slice_edge(p, axis, zones, e.tube, step, c, leans)
+                records, shape = _slice_edge(p, axis, zones, e.tube, step, c, shape)
                 curve = _fit_edge(records, c, name, axis)
                 best = (curve, records, sum(r.ok for r in records))
             if best is None:
@@ -451,9 +531,13 @@ def extract_network(
     members = {v: sorted(renum[k] for k in ks) for v, ks in graph.junctions.items()}
     edges: list[_Edge] = []
     for e in sk_edges:
-        axis = _axis_from_path(e.path, grid)
         hw = grid.half_width[tuple(np.round(e.path).astype(np.int64).T)]
         half = float(np.median(hw)) if hw.size else 1.0
+        free = tuple(v not in members for v in e.nodes[:2])
+        path, cut = _trim_free_ends(e.path, free, half / grid.cell)
+        axis = _axis_from_path(path, grid)
+        if any(cut):  # straight on to where the skeleton ended
+            axis = _extend(axis, -cut[0] * grid.cell, axis.length + cut[1] * grid.cell)[0]
         tube = 1.6 * half + 0.5
         near = cKDTree(axis.points[:, :2]).query(pts[:, :2], distance_upper_bound=tube)[0]
         edges.append(_Edge(e.path, list(e.nodes), list(getattr(e, "through", [])), axis, half,

@@ -312,23 +312,24 @@ def crown_height(
     return Crown(float(np.polyval(coef, 0.0)), float(coef[0]), float(sigma))
 
 
-def estimate_roll(
+def cross_slopes(
     local: np.ndarray, slicing: SlicingConfig, settings: CenterlineConfig
-) -> float:
-    """Roll of the section about the axis (radians) from the cross-slopes of floor and roof.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cross-slopes of floor and roof, every metre along the axis.
 
-    ``local`` holds the points as (along, lateral, vertical), shape (N, 3), metres;
-    ``slicing`` and ``settings`` give the slicing and kernel parameters. Positive: the floor
-    rises to the left.
+    ``local`` holds the points as (along, lateral, vertical), shape (N, 3), metres. Every metre
+    a slice's floor and roof peaks are found (wide window only); the points within two windows
+    of each are fitted with a line across the tunnel (inner 80 % of their lateral range, so
+    wall corners do not count; one 3-MAD trim).
 
-    Every metre a slice's floor and roof peaks are found (wide window only); the points within
-    two windows of each are fitted with a line across the tunnel (inner 80 % of their lateral
-    range, so wall corners do not count; one 3-MAD trim). The median slope is the roll. It is
-    taken as 0 below 0.1 degree (a levelled scan is left untouched) and when the slopes disagree
-    by more than 1 degree (robust spread: a rough floor, not a rolled scan).
+    Returns
+    -------
+    stations, angles : ndarray
+        Where along the axis (m) and the slope's angle (radians; positive: rising to the left),
+        one per floor or roof line found.
     """
     c = settings
-    slopes = []
+    stations, slopes = [], []
     for sl in slice_along_axis(
         local[:, 0], step=max(slicing.step, 1.0), thickness=slicing.thickness
     ):
@@ -353,12 +354,59 @@ def estimate_roll(
             keep = np.abs(r - np.median(r)) <= 3 * 1.4826 * np.median(np.abs(r - np.median(r)))
             if keep.sum() >= 30:
                 b, a = np.polyfit(q[keep, 1], q[keep, 2], 1)
+            stations.append(sl.station)
             slopes.append(b)
-    if len(slopes) < 3:
+    return np.asarray(stations, dtype=np.float64), np.arctan(np.asarray(slopes, dtype=np.float64))
+
+
+def _common_roll(angles: np.ndarray) -> float:
+    """The median angle; 0 below 0.1 degree (a levelled scan is left untouched), with fewer
+    than 3 angles, or when they disagree by more than 1 degree (robust spread: a rough floor,
+    not a rolled scan)."""
+    if angles.size < 3:
         return 0.0
-    angles = np.arctan(slopes)
     spread = 1.4826 * float(np.median(np.abs(angles - np.median(angles))))
     if spread > np.radians(1.0):
         return 0.0  # rough floor/roof, no common cross-slope: nothing to level
     roll = float(np.median(angles))
     return roll if abs(roll) >= np.radians(0.1) else 0.0
+
+
+def estimate_roll(
+    local: np.ndarray, slicing: SlicingConfig, settings: CenterlineConfig
+) -> float:
+    """Roll of the section about the axis (radians) from the cross-slopes of floor and roof.
+
+    ``local`` holds the points as (along, lateral, vertical), shape (N, 3), metres;
+    ``slicing`` and ``settings`` give the slicing and kernel parameters. Positive: the floor
+    rises to the left.
+
+    The median of :func:`cross_slopes`. It is taken as 0 below 0.1 degree (a levelled scan is
+    left untouched) and when the slopes disagree by more than 1 degree (robust spread: a rough
+    floor, not a rolled scan).
+    """
+    return _common_roll(cross_slopes(local, slicing, settings)[1])
+
+
+def roll_profile(
+    local: np.ndarray, slicing: SlicingConfig, settings: CenterlineConfig, window: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The section's roll along the axis: :func:`estimate_roll`'s rule on the cross-slopes
+    within ``window`` m either side of each metre (the whole axis' where fewer than three
+    slopes lie within it).
+
+    A drift network's edge turns (a ramp's bend, a drift that follows the seam), and a tilted
+    scan rolls each direction's section by its own angle: one roll per edge does not fit
+    both sides of a bend. Returns ``(stations, angles)`` (m, radians), empty when no slope was
+    found; between and beyond stations the roll is interpolated (:func:`numpy.interp`).
+    """
+    st, ang = cross_slopes(local, slicing, settings)
+    if st.size == 0:
+        return st, ang
+    at = np.unique(st)
+    whole = _common_roll(ang)
+    roll = np.empty(at.size)
+    for k, s in enumerate(at):
+        near = ang[np.abs(st - s) <= window]
+        roll[k] = _common_roll(near) if near.size >= 3 else whole
+    return at, roll
