@@ -335,9 +335,9 @@ def detect(
             "centreline after registration; do the epochs cover the same tunnel?"
         )
     # the registration's error along the surface normals: the misfit the scans' own noise
-    # does not explain (tunneldef.registration.verify)
+    # does not explain, or that neighbouring points share (tunneldef.registration.verify)
     check = reg_all.registration_check
-    reg_sigma = float(check.excess) if check is not None and np.isfinite(check.excess) else 0.0
+    reg_sigma = check.registration_sigma if check is not None else 0.0
     if tiles is None:
         d = compute_deformation(ref.xyz, moved.xyz, ref_cl, settings=config.deformation,
                                 projection=projection, registration_sigma=reg_sigma,
@@ -541,7 +541,7 @@ def detect_network(
                            points_per_metre=config.registration.max_points_per_metre)
     notify(progress, "registration check", 1.0)
     report.add(network_registration_checks(check, qc))
-    reg_sigma = float(check.excess) if np.isfinite(check.excess) else 0.0
+    reg_sigma = check.registration_sigma
     timings["registration"] = time.perf_counter() - t
     t = time.perf_counter()
     reach = 2.0 * max(float(ref_net.grid.half_width.max()), 1.0)
