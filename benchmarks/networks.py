@@ -1,7 +1,9 @@
 """Synthetic drift networks: the 250 m preset pair at survey densities (counts, time, memory).
 
 Generates :func:`tunneldef.synth.network_250m_pair` (a main drift, three cross-cuts, a 4-way
-crossing, a 12 % ramp with a bend; five deformations; SLAM drift; strays) at each density and
+crossing, a 12 % ramp with a bend; five deformations; SLAM drift; strays), or with
+``--preset ramp-survey`` :func:`tunneldef.synth.ramp_survey_pair` (a pair shaped like a real
+handheld-SLAM survey, tilted 3 degrees), at each density and
 prints, per epoch, the points per branch (shell / equipment / coal / outliers), the strays,
 the generation time and the memory; ``--out DIR`` also writes each pair (``ref``/``cmp`` clouds
 through :func:`tunneldef.io.write`, ``truth.npz``) into ``DIR/d<density>/``.
@@ -15,8 +17,8 @@ quality verdict and every failed check, time and peak RSS, the noise floor on th
 shell, and per deformation the branch it was measured on, how far the read peak lies from the
 true one and the core median read against the truth.
 
-Usage: ``python benchmarks/networks.py [--densities 300,1000] [--seed 0] [--out DIR]
-[--fmt laz|las|ply] [--detect]``
+Usage: ``python benchmarks/networks.py [--preset 250m|ramp-survey] [--densities 300,1000]
+[--noise SIGMA] [--seed 0] [--out DIR] [--fmt laz|las|ply] [--detect]``
 
 Measured (one run, 2 cores shared with other work): 1.1 + 1.2 M points in 6-11 s at
 300 points/m^2, 3.8 + 3.9 M points in 13-31 s at 1000 points/m^2 with 0.9 GB of arrays at the
@@ -39,8 +41,12 @@ from tunneldef.synth.network import (
     NetworkPair,
     make_network_pair,
     network_250m_pair,
+    ramp_survey_pair,
     write_network_pair,
 )
+
+#: ``--preset`` name -> pair spec factory (keyword arguments: density, seed, ...)
+PRESETS = {"250m": network_250m_pair, "ramp-survey": ramp_survey_pair}
 
 #: Scorers run on every generated pair: ``pair -> {name: value}`` (``--detect`` adds
 #: :func:`score_detect`).
@@ -184,9 +190,11 @@ def score_detect(pair: NetworkPair) -> dict[str, str]:
     return out
 
 
-def run(density: float, seed: int, out: Path | None, fmt: str) -> None:
+def run(density: float, seed: int, out: Path | None, fmt: str, preset: str = "250m",
+        noise: float | None = None) -> None:
     """Generate, report and optionally write one pair."""
-    spec = network_250m_pair(density=density, seed=seed)
+    extra = {} if noise is None else {"noise_sigma": noise}
+    spec = PRESETS[preset](density=density, seed=seed, **extra)
     tracemalloc.start()
     start = time.perf_counter()
     pair = make_network_pair(spec)
@@ -195,7 +203,8 @@ def run(density: float, seed: int, out: Path | None, fmt: str) -> None:
     tracemalloc.stop()
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
     t = pair.truth
-    print(f"\n## density {density:g} points/m^2, seed {seed}\n")
+    print(f"\n## {preset}, density {density:g} points/m^2, noise sigma "
+          f"{1e3 * spec.noise_sigma:g} mm, seed {seed}\n")
     print(
         f"{len(pair.ref):,} reference + {len(pair.cmp):,} compared points in {seconds:.1f} s; "
         f"peak array memory {peak / 1024**3:.2f} GB (process peak RSS so far {rss:.2f} GB)"
@@ -219,6 +228,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--densities", default="300,1000", help="points per m^2, comma-separated")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--preset", default="250m", choices=sorted(PRESETS),
+                    help="250m: network_250m_pair; ramp-survey: ramp_survey_pair (a pair shaped "
+                         "like a real handheld-SLAM survey: the later epoch goes on up a ramp "
+                         "with four dead ends)")
+    ap.add_argument("--noise", type=float, default=None,
+                    help="noise sigma per coordinate, m (default: the preset's)")
     ap.add_argument("--out", type=Path, default=None, help="write each pair into OUT/d<density>/")
     ap.add_argument("--fmt", default="laz", choices=["laz", "las", "ply"])
     ap.add_argument("--detect", action="store_true",
@@ -227,7 +242,7 @@ def main() -> None:
     if args.detect:
         SCORERS.append(score_detect)
     for density in (float(d) for d in args.densities.split(",")):
-        run(density, args.seed, args.out, args.fmt)
+        run(density, args.seed, args.out, args.fmt, args.preset, args.noise)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from tunneldef.synth.network import (
     make_network_pair,
     network_250m,
     network_250m_pair,
+    ramp_survey_pair,
     write_network_pair,
 )
 
@@ -299,6 +300,19 @@ def test_coverage_of_the_epochs(pair):
     for e in (t.ref, t.cmp):
         coal = e.label == LABEL_DYNAMIC
         assert coal.sum() > 100 and set(np.unique(e.branch[coal])) == {0}
+
+
+def test_the_ramp_survey_pair_covers_more_in_the_later_epoch():
+    """The survey-shaped preset: the reference walks the main drift and its three cross-cuts,
+    the compared walk also the ramp (climbing about 20 m) and its four dead ends."""
+    p = make_network_pair(ramp_survey_pair(density=20.0, seed=1))
+    t = p.truth
+    shell = t.ref.label == 0
+    assert set(np.unique(t.ref.branch[shell & ~t.ref.stray])) == {0, 1, 2, 3}
+    assert set(np.unique(t.cmp.branch[(t.cmp.label == 0) & ~t.cmp.stray])) == set(range(9))
+    ramp = t.cmp.xyz_ref[(t.cmp.branch == 4) & (t.cmp.label == 0)]
+    assert 18.0 < np.ptp(ramp[:, 2]) - 3.0 < 22.0
+    assert len(p.cmp) > 1.8 * len(p.ref)
 
 
 def test_seeded_and_deterministic():

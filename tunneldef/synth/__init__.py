@@ -81,6 +81,8 @@ from .network import (
     make_network_pair,
     network_250m,
     network_250m_pair,
+    ramp_survey,
+    ramp_survey_pair,
     write_network_pair,
 )
 from .sampling import _sample_epoch, write_epochs
@@ -119,6 +121,8 @@ __all__ = [
     "write_network_pair",
     "network_250m",
     "network_250m_pair",
+    "ramp_survey",
+    "ramp_survey_pair",
 ]
 
 log = logging.getLogger(__name__)

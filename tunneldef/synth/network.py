@@ -1309,3 +1309,84 @@ def network_250m_pair(**changes) -> NetworkPairSpec:
     }
     base.update(changes)
     return NetworkPairSpec(**base)
+
+
+def ramp_survey() -> NetworkSpec:
+    """A network shaped like a real pair of handheld-SLAM surveys (reference frame: x along
+    the main drift, z up, floor at z = -1.5).
+
+    - 0 ``main``: 80 m straight, rectangle 4.8 m x 3.0 m, pipes, cables and a conveyor;
+    - 1-3 ``xc1``-``xc3``: cross-cuts at right angles at x = 20 m (40 m to the right, open),
+      45 m (15 m to the left, a dead end) and 70 m (18 m to the right, a dead end),
+      rectangles 4.2 m x 2.8 m;
+    - 4 ``ramp``: on from the end of the main drift, 8 m level, then 60 m at a 15 % grade and
+      a 35 degree bend to the left (radius 15 m) into 70 m more at 15 %: about 20 m of climb;
+    - 5-8 ``xc4``-``xc7``: four level dead ends of 12-15 m off the ramp (two on its straight,
+      two beyond its bend, either side), rectangles 4.0-4.2 m x 2.8 m.
+    """
+    g = 0.15
+    c, s = float(np.cos(np.radians(35.0))), float(np.sin(np.radians(35.0)))
+    p0, p1 = (80.0, 0.0, 0.0), (88.0, 0.0, 0.0)
+    p2 = (148.0, 0.0, 60.0 * g)
+    p3 = (148.0 + 70.0 * c, 70.0 * s, 130.0 * g)
+
+    def along(a: tuple, b: tuple, t: float) -> tuple[float, float, float]:
+        return tuple(float(x + t * (y - x)) for x, y in zip(a, b, strict=True))
+
+    j4, j5, j6, j7 = along(p1, p2, 0.3), along(p1, p2, 0.75), along(p2, p3, 0.5), along(p2, p3, 0.8)
+    xc = SectionSpec("rectangle", 4.2, 2.8)
+    xs = SectionSpec("rectangle", 4.0, 2.8)
+    end = (False, True)
+    edges = (
+        EdgeSpec("main", ((0.0, 0.0, 0.0), p0), SectionSpec("rectangle", 4.8, 3.0),
+                 equipment=True, conveyor=True),
+        EdgeSpec("xc1", ((20.0, 0.0, 0.0), (20.0, -40.0, 0.0)), xc),
+        EdgeSpec("xc2", ((45.0, 0.0, 0.0), (45.0, 15.0, 0.0)), xc, faces=end),
+        EdgeSpec("xc3", ((70.0, 0.0, 0.0), (70.0, -18.0, 0.0)), xc, faces=end),
+        EdgeSpec("ramp", (p0, p1, p2, p3), SectionSpec("rectangle", 4.8, 3.0), bend_radius=15.0,
+                 equipment=True),
+        EdgeSpec("xc4", (j4, (j4[0], -15.0, j4[2])), xs, faces=end),
+        EdgeSpec("xc5", (j5, (j5[0], 15.0, j5[2])), xc, faces=end),
+        EdgeSpec("xc6", (j6, (j6[0] + 12.0 * s, j6[1] - 12.0 * c, j6[2])), xs, faces=end),
+        EdgeSpec("xc7", (j7, (j7[0] - 12.0 * s, j7[1] + 12.0 * c, j7[2])), xs, faces=end),
+    )
+    junctions = (
+        JunctionSpec("xc1", (20.0, 0.0, 0.0), (0, 1)),
+        JunctionSpec("xc2", (45.0, 0.0, 0.0), (0, 2)),
+        JunctionSpec("xc3", (70.0, 0.0, 0.0), (0, 3)),
+        JunctionSpec("ramp portal", p0, (0, 4)),
+        JunctionSpec("xc4", j4, (4, 5)),
+        JunctionSpec("xc5", j5, (4, 6)),
+        JunctionSpec("xc6", j6, (4, 7)),
+        JunctionSpec("xc7", j7, (4, 8)),
+    )
+    return NetworkSpec(edges, junctions, name="ramp_survey")
+
+
+def ramp_survey_pair(**changes) -> NetworkPairSpec:
+    """The :func:`ramp_survey` pair: the reference walks the main drift and its three
+    cross-cuts; the later, compared walk also goes up the whole ramp and into its four dead
+    ends (twice the points). 150 points/m^2 (0.08 m spacing), +-3 cm noise (sigma 1.5 cm),
+    SLAM drift 5 cm per sqrt(100 m), a 3 degree tilt, each epoch in its own frame.
+
+    Deformations: main roof sag 40 mm at 35 m, left-wall bulge 50 mm at 25 m of ``xc1``.
+    Keyword arguments override any field."""
+    defs = (
+        BranchDeformation(0, DeformationSpec("roof_sag", 35.0, 6.0, 2.5, 0.040)),
+        BranchDeformation(1, DeformationSpec("wall_bulge", 25.0, 5.0, 1.5, 0.050, "left")),
+    )
+    ref = tuple(Stretch(k, 0.0, 80.0 if k == 0 else None) for k in range(4))
+    cmp = tuple(Stretch(k, 0.0, 80.0 if k == 0 else None) for k in range(9))
+    base = {
+        "network": ramp_survey(),
+        "deformations": defs,
+        "ref_coverage": ref,
+        "cmp_coverage": cmp,
+        "density": 150.0,
+        "noise_sigma": 0.015,
+        "drift": 0.05,
+        "tilt_deg": 3.0,
+        "translation": (1234.0, -567.0, 89.0),
+    }
+    base.update(changes)
+    return NetworkPairSpec(**base)
