@@ -240,7 +240,8 @@ def test_detect_network_measures_each_branch() -> None:
     for k in (0, 1, 2):
         assert f"reference_network.edge{k}.curve_uncertainty" in names
         assert f"deformation.edge{k}.significant_share" in names
-    assert {"registration.fit_excess", "registration.translation_residual",
+    assert {"registration.fit_excess", "registration.shared_misfit",
+            "registration.translation_residual",
             "registration.translation_convergence"} <= names
     assert q["verified"] is True, q["failed"]
     assert "note" not in r.cloud.meta

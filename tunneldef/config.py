@@ -285,7 +285,9 @@ class QualityConfig:
                                             "centrelines to")
     max_fit_excess: float = _p(0.008, "ours: cross-epoch point-to-plane misfit the scans' own "
                                       "noise does not explain, m (synthetic pairs: correct "
-                                      "1.8 mm, 2 cm lateral offset 9.8 mm, 0.1 deg yaw 8.6 mm)")
+                                      "1.8 mm, 2 cm lateral offset 9.8 mm, 0.1 deg yaw 8.6 mm); "
+                                      "also the limit of the misfit neighbouring points share "
+                                      "(registration.shared_misfit: 1-3 mm on correct pairs)")
     max_centreline_difference: float = _p(0.03, "ours: p95 distance between the two epochs' "
                                                 "registered centrelines / sqrt(2), m: about "
                                                 "either curve's p95 error; 3 cm as the sweep "

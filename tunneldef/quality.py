@@ -213,9 +213,9 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
     """Checks of the registration from its independent figures (a
     :class:`~tunneldef.registration.verify.RegistrationCheck`)."""
     return [
-        _fit_excess(check, qc, "the compared epoch does not lie on the reference as closely as "
-                    "the scans' noise allows (tilt or offset); check that both epochs show the "
-                    "same tunnel"),
+        *_fit_excess(check, qc, "the compared epoch does not lie on the reference as closely "
+                     "as the scans' noise allows (tilt or offset); check that both epochs show "
+                     "the same tunnel"),
         _check("registration.centreline_difference", check.centreline_difference,
                qc.max_centreline_difference, "<=", "m",
                "the two epochs' centrelines do not agree after registration (sparse or noisy "
@@ -256,11 +256,18 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
     ]
 
 
-def _fit_excess(check: Any, qc: QualityConfig, advice: str) -> Check:
-    """The misfit the scans' own noise does not explain (drift or network)."""
-    return _check("registration.fit_excess", check.excess, qc.max_fit_excess, "<=", "m", advice,
-                  f"cross-epoch point-to-plane sigma {check.cross_residual:.4f} m vs the "
-                  f"epochs' own {check.ref_residual:.4f} / {check.cmp_residual:.4f} m")
+def _fit_excess(check: Any, qc: QualityConfig, advice: str) -> list[Check]:
+    """The misfit the scans' own noise does not explain, and the misfit neighbouring points
+    share (drift or network): both enter the LoD95, which then cannot show a poor fit as
+    change, so both are held to the same limit here."""
+    return [
+        _check("registration.fit_excess", check.excess, qc.max_fit_excess, "<=", "m", advice,
+               f"cross-epoch point-to-plane sigma {check.cross_residual:.4f} m vs the "
+               f"epochs' own {check.ref_residual:.4f} / {check.cmp_residual:.4f} m"),
+        _check("registration.shared_misfit", check.coherent, qc.max_fit_excess, "<=", "m",
+               advice, "spread of the signed point-to-plane misfit's medians in 2 m patches, "
+               "less their own noise: what a tilt, an offset or a SLAM drift residue leaves"),
+    ]
 
 
 def _mm(v: float) -> str:
@@ -325,8 +332,9 @@ def network_registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
     rem = float(np.linalg.norm(check.remaining)) if np.all(np.isfinite(check.remaining)) \
         else np.inf
     return [
-        _fit_excess(check, qc, "the compared network does not lie on the reference as closely "
-                    "as the scans' noise allows; check that both epochs show the same drifts"),
+        *_fit_excess(check, qc, "the compared network does not lie on the reference as "
+                     "closely as the scans' noise allows; check that both epochs show the same "
+                     "drifts"),
         _check("registration.translation_residual", rem, qc.max_axial_residual, "<=", "m",
                "an independent point-to-plane fit finds the compared network off its "
                "registered position; the registration did not converge",
