@@ -55,7 +55,7 @@ from .fit import fit_stiffest
 from .plan import PlanGrid
 from .roof_floor import roll_profile
 from .skeleton import SkeletonGraph, plan_graph
-from .slicing import slice_along_axis
+from .slicing import slice_along_axis, thickness_for
 from .walls import estimate_wall_leans
 
 __all__ = ["NetworkResult", "extract_network"]
@@ -249,7 +249,8 @@ def _slice_edge(
         _roll(local, shape.roll_at(axis, local[:, 0]))
     leans = shape.leans
     records = []
-    for s in slice_along_axis(local[:, 0], step=sl.step, thickness=sl.thickness):
+    thick = thickness_for(local[:, 0], sl.thickness, sl.min_points)
+    for s in slice_along_axis(local[:, 0], step=sl.step, thickness=thick):
         rec = SliceRecord(station=s.station, n_points=len(s.index))
         records.append(rec)
         if _in_zones(s.station, zones):

@@ -74,3 +74,21 @@ def slice_along_axis(
     lo = np.searchsorted(sorted_a, np.asarray(stations) - thickness / 2, side="left")
     hi = np.searchsorted(sorted_a, np.asarray(stations) + thickness / 2, side="right")
     return [Slice(float(s), order[i:j]) for s, i, j in zip(stations, lo, hi, strict=True)]
+
+
+def thickness_for(along: np.ndarray, thickness: float, min_points: int, *,
+                  margin: float = 1.5, most: float = 1.0) -> float:
+    """A slice thickness that holds ``margin`` times ``min_points`` at the cloud's density.
+
+    ``along`` holds the points' positions along the axis (m). The points per metre are the
+    median count of the occupied 1 m bins; the thickness is ``thickness`` or, where that holds
+    too few points (a sparse handheld scan: 50 points/m^2 on a 14 m perimeter gives 140 in
+    0.2 m), the least that holds enough, at most ``most`` metres."""
+    if along.size == 0:
+        return thickness
+    counts = np.bincount(np.floor(along - along.min()).astype(np.int64))
+    counts = counts[counts > 0]
+    per_metre = float(np.median(counts)) if counts.size else 0.0
+    if per_metre <= 0:
+        return thickness
+    return float(min(max(thickness, margin * min_points / per_metre), max(most, thickness)))
