@@ -18,7 +18,7 @@ shell, and per deformation the branch it was measured on, how far the read peak 
 true one and the core median read against the truth.
 
 Usage: ``python benchmarks/networks.py [--preset 250m|ramp-survey] [--densities 300,1000]
-[--noise SIGMA] [--seed 0] [--out DIR] [--fmt laz|las|ply] [--detect]``
+[--noise SIGMA] [--roughness SIGMA] [--seed 0] [--out DIR] [--fmt laz|las|ply] [--detect]``
 
 Measured (one run, 2 cores shared with other work): 1.1 + 1.2 M points in 6-11 s at
 300 points/m^2, 3.8 + 3.9 M points in 13-31 s at 1000 points/m^2 with 0.9 GB of arrays at the
@@ -191,9 +191,11 @@ def score_detect(pair: NetworkPair) -> dict[str, str]:
 
 
 def run(density: float, seed: int, out: Path | None, fmt: str, preset: str = "250m",
-        noise: float | None = None) -> None:
+        noise: float | None = None, roughness: float = 0.0) -> None:
     """Generate, report and optionally write one pair."""
     extra = {} if noise is None else {"noise_sigma": noise}
+    if roughness:
+        extra["roughness"] = roughness
     spec = PRESETS[preset](density=density, seed=seed, **extra)
     tracemalloc.start()
     start = time.perf_counter()
@@ -204,7 +206,7 @@ def run(density: float, seed: int, out: Path | None, fmt: str, preset: str = "25
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
     t = pair.truth
     print(f"\n## {preset}, density {density:g} points/m^2, noise sigma "
-          f"{1e3 * spec.noise_sigma:g} mm, seed {seed}\n")
+          f"{1e3 * spec.noise_sigma:g} mm, rock relief {1e3 * spec.roughness:g} mm, seed {seed}\n")
     print(
         f"{len(pair.ref):,} reference + {len(pair.cmp):,} compared points in {seconds:.1f} s; "
         f"peak array memory {peak / 1024**3:.2f} GB (process peak RSS so far {rss:.2f} GB)"
@@ -234,6 +236,8 @@ def main() -> None:
                          "with four dead ends)")
     ap.add_argument("--noise", type=float, default=None,
                     help="noise sigma per coordinate, m (default: the preset's)")
+    ap.add_argument("--roughness", type=float, default=0.0,
+                    help="standard deviation of the rock relief, m (default 0: planar walls)")
     ap.add_argument("--out", type=Path, default=None, help="write each pair into OUT/d<density>/")
     ap.add_argument("--fmt", default="laz", choices=["laz", "las", "ply"])
     ap.add_argument("--detect", action="store_true",
@@ -242,7 +246,7 @@ def main() -> None:
     if args.detect:
         SCORERS.append(score_detect)
     for density in (float(d) for d in args.densities.split(",")):
-        run(density, args.seed, args.out, args.fmt, args.preset, args.noise)
+        run(density, args.seed, args.out, args.fmt, args.preset, args.noise, args.roughness)
 
 
 if __name__ == "__main__":

@@ -393,6 +393,36 @@ def test_noise_free_surfaces_are_exact():
         assert np.max(np.abs(sd - cmp.displacement[m])) < 5e-5
 
 
+def test_rock_relief_is_the_same_rock_in_both_epochs():
+    """``roughness`` moves every edge's shell off its design outline by a smooth relief of that
+    standard deviation, the same in both epochs (where the rock did not move)."""
+    from scipy.spatial import cKDTree
+
+    rough = 0.04
+    p = make_network_pair(density=15.0, seed=5, noise_sigma=0.0, drift=0.0, equipment=False,
+                          roughness=rough)
+    t = p.truth
+    sds = {}
+    for name, ep in (("ref", t.ref), ("cmp", t.cmp)):
+        m = ep.shell & (ep.surface != SURFACE_FACE) & (ep.displacement == 0)
+        sd = np.full(len(ep.branch), np.nan)
+        for b in t.branches:
+            mb = m & (ep.branch == b.index)
+            sd[mb] = b.signed_distance(ep.xyz_ref[mb])[0]
+        sds[name] = (ep.xyz_ref[m], sd[m])
+    for name in ("ref", "cmp"):
+        assert np.std(sds[name][1]) == pytest.approx(rough, rel=0.25), name
+    # the compared epoch's relief, read off the reference points next to it
+    (rx, rsd), (cx, csd) = sds["ref"], sds["cmp"]
+    dist, nn = cKDTree(rx).query(cx)
+    close = dist < 0.04  # the relief is steep: compare points a few cm apart only
+    assert close.sum() > 1000
+    diff = csd[close] - rsd[nn[close]]
+    assert np.std(diff) < 0.25 * rough  # independent rock would give sqrt(2) * rough
+    with pytest.raises(ConfigError, match="roughness"):
+        make_network_pair(density=15.0, seed=5, roughness=-0.01)
+
+
 def test_edge_checks():
     with pytest.raises(ConfigError, match="at least 2"):
         EdgeSpec("a", ((0, 0, 0),))

@@ -61,7 +61,7 @@ from .design import (
 )
 from .drift import DriftWalk, random_drift
 from .sampling import _SHADOW_SEEN, _SHADOW_STEP, _Epoch, _intensity, write_epochs
-from .scene import _draw_heaps, _make_scene
+from .scene import _draw_heaps, _make_scene, _relief, draw_relief
 
 __all__ = [
     "SURFACE_FACE",
@@ -284,6 +284,10 @@ class NetworkPairSpec:
         Distance of the single far stray point from the nearest design axis, m (0: none).
     stray_clusters : int
         Small clusters (5-40 points, 0.3 m across) 40-200 m away from the network.
+    roughness : float
+        Standard deviation of a smooth static rock relief of every edge's shell about its
+        design outline, m (the same rock in both epochs; 0: planar walls). Drawn from its own
+        random stream, so a pair with roughness 0 is the pair drawn before it existed.
     yaw_deg : float or None
         Rotation about z of the compared epoch's frame, degrees (None: random).
     tilt_deg : float
@@ -305,6 +309,7 @@ class NetworkPairSpec:
     drift_step: float = 10.0
     stray_distance: float = 130.0
     stray_clusters: int = 3
+    roughness: float = 0.0
     yaw_deg: float | None = None
     tilt_deg: float = 2.0
     translation: tuple[float, float, float] = (350.0, -120.0, 15.0)
@@ -326,6 +331,8 @@ class NetworkPairSpec:
                 raise ConfigError(f"deformations must be BranchDeformation objects, got {d!r}")
         check_positive("density", self.density, unit="points per m^2")
         check_positive("drift_step", self.drift_step)
+        if not np.isfinite(self.roughness) or not 0 <= self.roughness < 0.25:
+            raise ConfigError(f"roughness must be in [0, 0.25) m, got {self.roughness!r}")
         for name in ("noise_sigma", "drift", "stray_distance"):
             val = getattr(self, name)
             if not np.isfinite(val) or val < 0:
@@ -771,6 +778,15 @@ class _Sampler:
     def __init__(self, branches, openings, scenes, spec: NetworkPairSpec, rng) -> None:
         self.branches, self.openings, self.scenes = branches, openings, scenes
         self.spec, self.rng = spec, rng
+        # the rock: one relief per edge, from a stream of its own shared by both epochs
+        self.reliefs = {
+            b.index: draw_relief(
+                np.random.default_rng([spec.seed, 0x7E11EF, b.index]),
+                spec.roughness,
+                b.outline.perimeter,
+            )
+            for b in branches
+        } if spec.roughness > 0 else {}
         self.parts: list[dict[str, np.ndarray]] = []
         self._current: tuple[Branch, int, Stretch, float] | None = None
 
@@ -852,6 +868,11 @@ class _Sampler:
                 keep &= ~table[cell] | (rng.random(s.shape[0]) < _SHADOW_SEEN)
             self._cut(b, s, u, v, keep)
             s, p, u, v, nu, nv, surf = (x[keep] for x in (s, p, u, v, nu, nv, surf))
+            relief = self.reliefs.get(b.index)
+            if relief is not None:  # static rock relief, outward positive
+                off = _relief(relief, s, p)
+                u -= off * nu
+                v -= off * nv
             disp = np.zeros(s.shape[0])
             for d in deformations:
                 pc = _patch_centre(out, d)

@@ -142,22 +142,31 @@ def _make_scene(tunnel: TunnelSpec, rng: np.random.Generator) -> _Scene:
     # the surveyor walks off the conveyor's side, the scanner held at about 1.5 m
     walk = 0.0 if conveyor is None else -0.6 * conveyor["sign"]
     scanner = (walk, -h2 + min(1.5, 0.6 * sec.height))
-    relief = None
-    if tunnel.roughness > 0:
-        k = 32
-        lam = rng.uniform(0.8, 8.0, k)
-        harmonic = rng.integers(1, max(2, int(outline.perimeter / 0.8)), k)
-        relief = np.stack(
-            [
-                np.full(k, tunnel.roughness * np.sqrt(2.0 / k)),
-                2 * np.pi / lam * rng.choice([-1.0, 1.0], k),
-                harmonic.astype(float),
-                rng.uniform(0, 2 * np.pi, k),
-            ],
-            axis=1,
-        )
-        relief[:, 2] *= 2 * np.pi / outline.perimeter  # periodic around the outline
+    relief = draw_relief(rng, tunnel.roughness, outline.perimeter)
     return _Scene(tunnel, outline, axis, tuple(pipes), conveyor, chamber, relief, scanner)
+
+
+def draw_relief(rng: np.random.Generator, roughness: float, perimeter: float) -> np.ndarray | None:
+    """A smooth static rock relief of standard deviation ``roughness`` (m): 32 waves 0.8-8 m
+    long along the axis, periodic around an outline of ``perimeter`` metres; rows (amplitude,
+    along wavenumber, around wavenumber, phase) for :func:`_relief`. None where
+    ``roughness`` is 0."""
+    if roughness <= 0:
+        return None
+    k = 32
+    lam = rng.uniform(0.8, 8.0, k)
+    harmonic = rng.integers(1, max(2, int(perimeter / 0.8)), k)
+    relief = np.stack(
+        [
+            np.full(k, roughness * np.sqrt(2.0 / k)),
+            2 * np.pi / lam * rng.choice([-1.0, 1.0], k),
+            harmonic.astype(float),
+            rng.uniform(0, 2 * np.pi, k),
+        ],
+        axis=1,
+    )
+    relief[:, 2] *= 2 * np.pi / perimeter  # periodic around the outline
+    return relief
 
 
 def _relief(relief: np.ndarray, s: np.ndarray, p: np.ndarray) -> np.ndarray:
