@@ -69,6 +69,7 @@ from tunneldef.curve import Centerline
 from tunneldef.deformation import compute_deformation
 from tunneldef.deformation.local_surface import robust_deformation, voxel_cores
 from tunneldef.deformation.shell import classify_shell
+from tunneldef.errors import TunnelDefError
 from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
 
 #: the shared data folder: next to the checkout, or one level up (from a worktree)
@@ -667,10 +668,14 @@ def survey_block(seeds, cache, *, sections, densities, noises, cc=False, cached_
                 runs = {}
                 used = []
                 for seed in seeds:
-                    pr = registered_pair(
-                        survey_spec(section, density, SURVEY_NOISE[label], seed), cache,
-                        cached_only,
-                    )
+                    try:
+                        pr = registered_pair(
+                            survey_spec(section, density, SURVEY_NOISE[label], seed), cache,
+                            cached_only,
+                        )
+                    except TunnelDefError as exc:  # a refusal is a result, not a crash
+                        print(f"{name} s{seed}: refused: {exc}"[:200])
+                        continue
                     if pr is None:
                         continue
                     used.append(seed)

@@ -38,8 +38,9 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
    single surface: the floor in one epoch, the conveyor's frame in the other) gets no value
    (NaN, flagged ``unsupported``): one epoch's one-sided mean takes in the relief between the
    two parts, and these were the tails of the field (values beyond 10 mm on unchanged rock).
-7. *Scale from the data*: where the value of steps 4-5 exceeds three times its LoD95 (a
-   change no noise explains: flat rock reaches it in about 1e-8 of its cores), the core is
+7. *Scale from the data*: where the value of steps 4-5 exceeds three times the LoD95 of its
+   own noise (a change no noise explains: flat rock reaches it in about 1e-8 of its cores;
+   the registration's term, shared by a whole neighbourhood, is left out), the core is
    read at the finest support instead, its own cylinder with the smoothing bias taken out in
    full (``beta = 1``), so a narrow or strong change reads at its full size while flat rock
    keeps the quiet, pooled value (in the spirit of multi-scale M3C2: the smallest support
@@ -483,7 +484,12 @@ def robust_deformation(
     # finest support instead, the core's own cylinder with its smoothing bias taken out in
     # full: a narrow or strong change reads at its full size, flat rock keeps the quiet value
     with np.errstate(invalid="ignore"):
-        lod_quiet = _Z95 * (se_used + registration_sigma)
+        # the estimate's own noise only: the registration's error is shared by a whole
+        # neighbourhood, so it widens the LoD95 but says nothing about the support (with it,
+        # the wider LoD of a registration with a larger misfit kept a change at the coarser,
+        # smoothed support, and the cores that still cleared the gate were the ones noise
+        # had pushed up)
+        lod_quiet = _Z95 * se_used
         fine = np.isfinite(d_mean) & (np.abs(d_mean) > _FINE_GATE * lod_quiet)
     fine &= variation <= _MAX_VARIATION
     n_fine = int(fine.sum())
