@@ -64,7 +64,8 @@ class RegistrationCheck:
     Attributes
     ----------
     cross_residual : float
-        Robust sigma (1.4826 MAD) of the compared points' distance to the reference planes.
+        Robust sigma (1.4826 MAD) of the compared points' distance to the reference planes:
+        the median over the full 2 m patches of each patch's sigma about its own median.
     ref_residual, cmp_residual : float
         The same within each epoch (half of its points against the planes of the other half):
         what the scans themselves show.
