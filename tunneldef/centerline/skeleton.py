@@ -227,12 +227,17 @@ def _simplify(
                     break
         if changed:
             continue
-        # 2. merge nodes joined by a short edge (within the drift's half-width)
+        # 2. merge nodes joined by a short edge (within the drift's half-width), or by one up
+        # to 2.5 half-widths long that continues no drift straight on (an oblique crossing's
+        # medial axis splits into two forks a few metres apart, joined across the crossing)
         for k, e in enumerate(edges):
             a, b = e.nodes
-            if a < 0 or b < 0 or a == b:
+            if a < 0 or b < 0 or a == b or len(inc[a]) < 3 or len(inc[b]) < 3:
                 continue
-            if e.length <= max(radius[a], radius[b]) and len(inc[a]) >= 3 and len(inc[b]) >= 3:
+            r = max(radius[a], radius[b])
+            short = e.length <= r or (e.length <= 2.5 * r and (
+                _crosses(edges, inc, k, cell, r) or not _continues(edges, inc, k, cell, r)))
+            if short:
                 edges.pop(k)
                 w = np.array([len(inc[a]), len(inc[b])], dtype=np.float64)
                 nodes[a] = (nodes[a] * w[0] + nodes[b] * w[1]) / w.sum()
@@ -264,6 +269,70 @@ def _simplify(
         if not changed:
             break
     return edges
+
+
+def _leg(path: np.ndarray, from_start: bool, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """A point and the unit direction of a path's leg from ``reach`` to ``reach + 15`` cells
+    away from its start (or end) node: the drift's own axis, beyond the junction."""
+    p = path if from_start else path[::-1]
+    d = np.linalg.norm(p - p[0], axis=1)
+    far = p[(d >= reach) & (d <= reach + 15.0)]
+    if len(far) < 2:
+        far = p[len(p) // 2:] if len(p) >= 4 else p
+    u = far[-1] - far[0]
+    n = np.linalg.norm(u)
+    return far.mean(axis=0), (u / n if n > 0 else u)
+
+
+def _crosses(edges: list[SkeletonEdge], inc: dict[int, list[int]], k: int, cell: float,
+             radius: float, angle_deg: float = 35.0) -> bool:
+    """True when the link edge ``k`` joins the two forks of one crossing: an edge at one of
+    its nodes and an edge at the other leave in opposite directions (within ``angle_deg``)
+    along one line (their legs beyond the junction within half a drift width of each
+    other's line). Two cross-cuts staggered along a drift leave along parallel lines a link
+    apart."""
+    a, b = edges[k].nodes
+    reach = (radius + 2.0) / cell
+    cos_lim = -np.cos(np.radians(angle_deg))
+
+    def legs(v: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        out = []
+        for f in inc.get(v, []):
+            if f == k:
+                continue
+            g = edges[f]
+            out += [_leg(g.path, end == 0, reach) for end in (0, 1) if g.nodes[end] == v]
+        return out
+
+    for pa, ua in legs(a):
+        for pb, ub in legs(b):
+            if float(ua @ ub) >= cos_lim:
+                continue
+            off = pb - pa
+            gap = abs(float(off[0] * ua[1] - off[1] * ua[0]))  # distance from a's line, cells
+            if gap * cell <= 0.5 * radius:
+                return True
+    return False
+
+
+def _continues(edges: list[SkeletonEdge], inc: dict[int, list[int]], k: int, cell: float,
+               radius: float, angle_deg: float = 15.0) -> bool:
+    """True when the link edge ``k`` carries on another edge at either of its nodes straight
+    on (within ``angle_deg``): a drift passing two junctions a few metres apart, which must
+    stay two junctions."""
+    link = edges[k]
+    reach = (radius + 2.0) / cell
+    cos_lim = -np.cos(np.radians(angle_deg))
+    for side, v in enumerate(link.nodes):
+        u = _direction(link.path, side == 0, reach)
+        for f in inc.get(v, []):
+            if f == k:
+                continue
+            g = edges[f]
+            for end in (0, 1):
+                if g.nodes[end] == v and float(u @ _direction(g.path, end == 0, reach)) < cos_lim:
+                    return True
+    return False
 
 
 def _direction(path: np.ndarray, from_start: bool, reach: float) -> np.ndarray:
