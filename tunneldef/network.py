@@ -217,6 +217,52 @@ class CenterlineNetwork:
         )
         return CenterlineNetwork(edges, junctions, dict(self.meta))
 
+    def is_dead_end(self, edge_id: int) -> bool:
+        """True when the edge leaves one junction and ends free (a face, a stub, the end of
+        the scan), so that nothing else hangs on it; False for an edge between junctions and
+        for one that drifts pass through (a main drift whose both ends are free)."""
+        a, b = self.edges[edge_id].nodes
+        if (a < 0) == (b < 0):
+            return False
+        return not any(edge_id in j.edges for j in self.junctions
+                       if j.id not in (a, b))
+
+    def without(self, reasons: dict[int, str]) -> CenterlineNetwork:
+        """The network without the edges in ``reasons`` (edge id -> why it is left out).
+
+        The remaining edges are renumbered in order (``edges[i].id == i`` again); a junction
+        keeps its remaining members and is dropped when fewer than three branch ends meet
+        there (an edge passing through counts twice): the mouth of a left-out stub on a main
+        drift is no junction, though the main drift keeps its junction zone there (its
+        section has a hole in the wall). ``meta["left_out"]`` lists what was left out and
+        why.
+        """
+        if not reasons:
+            return self
+        keep = [e for e in self.edges if e.id not in reasons]
+        new_id = {e.id: i for i, e in enumerate(keep)}
+        junctions, new_j = [], {}
+        for j in self.junctions:
+            members = [(new_id[k], s) for k, s in zip(j.edges, j.chainages, strict=True)
+                       if k in new_id]
+            ends = sum(1 if min(s, keep[k].length - s) <= 1.0 else 2 for k, s in members)
+            if ends >= 3:
+                new_j[j.id] = len(junctions)
+                junctions.append(Junction(len(junctions), j.position,
+                                          tuple(k for k, _ in members),
+                                          tuple(s for _, s in members)))
+        for e in keep:
+            e.centerline.meta["edge"] = new_id[e.id]
+        edges = tuple(
+            NetworkEdge(new_id[e.id], f"edge-{new_id[e.id]}", e.centerline, e.zones,
+                        tuple(new_j.get(v, -1) for v in e.nodes), e.slices)
+            for e in keep
+        )
+        left = list(self.meta.get("left_out", []))
+        left += [{"edge": self.edges[k].name, "length_m": self.edges[k].length, "reason": r}
+                 for k, r in sorted(reasons.items())]
+        return CenterlineNetwork(edges, tuple(junctions), {**self.meta, "left_out": left})
+
     def to_dict(self, *, curves: bool = True) -> dict[str, Any]:
         """JSON-serialisable form: nodes (junctions) and edges."""
         return {

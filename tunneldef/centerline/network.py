@@ -394,11 +394,14 @@ def _passes(
 
 def _place_nodes(
     edges: list[_Edge], curves: list[Centerline], members: dict[int, list[int]],
-    node_xyz: dict[int, np.ndarray],
+    node_xyz: dict[int, np.ndarray], *, skip: dict[int, str] | None = None,
 ) -> None:
     """Junction nodes on fitted curves: where the end tangent of an edge that ends there meets
-    the edge passing through (else the node's foot point on the first member)."""
+    the edge passing through (else the node's foot point on the first member). Edges in
+    ``skip`` (left out, no fitted curve) neither host nor place a node."""
+    skip = skip or {}
     for v, ks in members.items():
+        ks = [k for k in ks if k not in skip] or ks
         through = [k for k in ks if v in edges[k].through]
         host = curves[through[0] if through else ks[0]]
         ending = [k for k in ks if v in edges[k].nodes and k not in through]
@@ -418,17 +421,28 @@ def _zones(
     edges: list[_Edge], node_xyz: dict[int, np.ndarray], curves: list[Centerline],
     members: dict[int, list[int]], margin: float,
 ) -> list[list[tuple[float, float]]]:
-    """Junction zones of every edge on ``curves`` (chainage intervals)."""
+    """Junction zones of every edge on ``curves`` (chainage intervals).
+
+    Each drift's direction at a junction is its chord over a few metres either side of the
+    node (beyond the other drifts' walls), not the tangent at the node: a skeleton axis bends
+    into an oblique crossing's forks there, and the tangent's angle to the other drift read
+    as a glancing meeting gave zones of 25 m."""
     zones: list[list[tuple[float, float]]] = [[] for _ in edges]
     sin_min = np.sin(np.radians(20.0))
     for v, ks in members.items():
         p = node_xyz[v][None]
         at = {k: float(curves[k].project(p).chainage[0]) for k in ks}
+        reach = 2.0 * max(edges[k].half_width for k in ks) + 1.0
         tan = {}
         for k in ks:
-            s = float(np.clip(at[k], 0.0, curves[k].length))
-            t = curves[k].frame_at(s)[0][0].copy()
+            cv = curves[k]
+            s = float(np.clip(at[k], 0.0, cv.length))
+            a, b = cv.point_at(np.clip([s - reach, s + reach], 0.0, cv.length))
+            t = b - a
             t[2] = 0.0
+            if np.linalg.norm(t) < 1e-6:
+                t = cv.frame_at(s)[0][0].copy()
+                t[2] = 0.0
             tan[k] = t / max(np.linalg.norm(t), 1e-12)
         for k in ks:
             half = 0.0
@@ -555,20 +569,33 @@ def extract_network(
     at = [[v for v, ks in members.items() if k in ks] for k in range(len(edges))]
     names = [f"edge {k} ({e.axis.length:.1f} m from {np.round(e.axis.points[0], 1).tolist()})"
              for k, e in enumerate(edges)]
-    # round 1: straighten every skeleton axis, then place the junctions on those curves
+    # round 1: straighten every skeleton axis, then place the junctions on those curves. A
+    # dead end whose sections cannot be read (a cross-cut seen a few metres in from the main
+    # drift, mostly its mouth) is left out, said so, rather than failing the network.
+    failed: dict[int, str] = {}
     first = []
     for k, e in enumerate(edges):
         notify(progress, "network centrelines", 0.1 + 0.3 * k / len(edges))
-        first.append(_passes(pts[e.index], e, e.axis, zones[k], [node_xyz[v] for v in at[k]],
-                             sl, c, names[k], quick=True)[0])
-    _place_nodes(edges, first, members, node_xyz)
+        try:
+            first.append(_passes(pts[e.index], e, e.axis, zones[k], [node_xyz[v] for v in at[k]],
+                                 sl, c, names[k], quick=True)[0])
+        except (NetworkError, NotATunnelError) as exc:
+            _leave_out(failed, k, e, members, names[k], exc)
+            first.append(e.axis)
+    _place_nodes(edges, first, members, node_xyz, skip=failed)
     zones = _zones(edges, node_xyz, first, members, nc.zone_margin)
     # round 2: the paper's passes along those curves, junction zones at the placed nodes
     for k, e in enumerate(edges):
         notify(progress, "network centrelines", 0.4 + 0.5 * k / len(edges))
-        e.curve, e.records = _passes(pts[e.index], e, first[k], zones[k],
-                                     [node_xyz[v] for v in at[k]], sl, c, names[k])
-    _place_nodes(edges, [e.curve for e in edges], members, node_xyz)
+        if k not in failed:
+            try:
+                e.curve, e.records = _passes(pts[e.index], e, first[k], zones[k],
+                                             [node_xyz[v] for v in at[k]], sl, c, names[k])
+                continue
+            except (NetworkError, NotATunnelError) as exc:
+                _leave_out(failed, k, e, members, names[k], exc)
+        e.curve, e.records = first[k], []
+    _place_nodes(edges, [e.curve for e in edges], members, node_xyz, skip=failed)
     # extend edges that end at a junction to its node
     final: list[Centerline] = []
     for e in edges:
@@ -612,4 +639,20 @@ def extract_network(
         "timings_s": {"graph": t_graph, "total": time.perf_counter() - t0},
     }
     notify(progress, "network centrelines", 1.0)
-    return NetworkResult(CenterlineNetwork(tuple(out_edges), junctions, meta), grid, graph)
+    net = CenterlineNetwork(tuple(out_edges), junctions, meta).without(failed)
+    return NetworkResult(net, grid, graph)
+
+
+def _leave_out(failed: dict[int, str], k: int, e: _Edge, members: dict[int, list[int]],
+               name: str, exc: Exception) -> None:
+    """Record that edge ``k`` is left out because its passes failed (``exc``), or raise a
+    :class:`NetworkError` when it is no branch off the network: only a dead end that leaves
+    one junction (and passes through none) can be dropped; an edge between junctions, or one
+    that other drifts cross, carries the network."""
+    ends = [v in members for v in e.nodes[:2]]
+    if sum(ends) != 1 or e.through:
+        raise NetworkError(str(exc)) from exc
+    reason = str(exc).split("; raise")[0]
+    logger.warning("network: %s left out, its sections cannot be read: %s", name, reason)
+    failed[k] = f"its sections cannot be read: {reason}"
+
