@@ -4,14 +4,28 @@ Steps of :func:`register_networks`:
 
 1. Coarse: every pairing of a reference junction with a compared junction, and of a branch
    direction at one with a branch direction at the other, proposes a rotation about the
-   vertical and a translation (junction onto junction). Each proposal is scored by how much of
-   the compared network's curves (sampled every metre) falls within ``coarse_radius`` of the
-   reference network's curves; either epoch may cover stretches the other does not, so the
-   score counts the common part and does not penalise the rest.
-2. Curves: rigid ICP of the compared curve samples onto the reference curve samples with a
-   shrinking match radius (3 m, 1 m, 0.3 m), which takes out the tilt of the compared
-   epoch's frame.
-3. Fine: Open3D point-to-plane ICP of the voxel-thinned clouds from there.
+   vertical and a translation (junction onto junction); so does every edge of one epoch laid
+   along every edge of the other and slid along it a metre at a time (two surveys need not
+   share a junction: a cross-cut walked in one of them only). Each proposal is scored by how
+   much of the compared network's curves (sampled every metre) falls within
+   ``coarse_radius`` of the reference network's curves in plan; either epoch may cover
+   stretches the other does not, so the score counts the common part and does not penalise
+   the rest.
+2. Hypotheses: the best distinct poses (``pool``) each go through
+3. Curves: robust rigid ICP of the compared curve samples onto the reference curve samples
+   with a shrinking match radius (3 m, 1 m, 0.3 m), which takes out the tilt of the compared
+   epoch's frame (a step that lowers the curves' overlap is not taken), and
+   then the best ``hypotheses`` of them by their points' evidence through
+4. Fine: Open3D point-to-plane ICP of the voxel-thinned clouds from there.
+5. The hypothesis the reference's points explain best is kept (:func:`_evidence`: compared
+   points on the reference count for it, compared points inside a drift the reference
+   scanned but off its surfaces count against it, points beyond the reference's coverage
+   neither way); the best evidence of the others is reported, for the registration check to
+   judge whether the networks fit two places alike. A wrong junction pairing slides the
+   compared epoch along a plain drift onto a look-alike cross-cut; where the two surveys
+   cover different stretches, the curves' overlap alone prefers the slide that lays their
+   ends over each other, and only the features (a cross-cut's mouth in the other's wall)
+   tell.
 
 The common length per reference edge is the length of 1 m bins along that edge where both
 epochs have points after registration.
@@ -43,14 +57,25 @@ class NetworkRegistration:
     transform : ndarray, shape (4, 4)
         Compared -> reference rigid transform.
     stages : dict
-        The transform after each stage (``coarse``, ``curves``, ``fine``).
+        The chosen pose after each stage (``coarse``, ``curves``, ``quick``: the thinned
+        ICP that ranks the hypotheses, ``fine``).
     junction_pairs : list of (int, int)
         Reference / compared junctions matched within 1 m after registration.
     curve_rms : float
         RMS distance of the compared curve samples to the reference curves over the common part
         after registration, metres.
     fitness : float
-        Share of the thinned compared points within ``fine_distance`` of the reference.
+        Share of the thinned compared points within ``fit_distance`` of the reference.
+    hypotheses : list of dict
+        Every distinct coarse pose carried through ICP (its coarse score, its evidence after
+        the curve alignment and after ICP, its stages), best first.
+    evidence : float
+        The chosen pose's evidence: the share of compared points on the reference less the
+        share inside a drift the reference scanned but off its surfaces.
+    alternative_evidence : float
+        The best evidence of a hypothesis that ended more than ``distinct_distance`` from the
+        chosen pose (-1 when none did): near the chosen one, the networks fit two places
+        alike.
     """
 
     transform: np.ndarray
@@ -58,6 +83,9 @@ class NetworkRegistration:
     junction_pairs: list[tuple[int, int]] = field(default_factory=list)
     curve_rms: float = float("nan")
     fitness: float = float("nan")
+    hypotheses: list[dict[str, Any]] = field(default_factory=list)
+    evidence: float = float("nan")
+    alternative_evidence: float = -1.0
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form."""
@@ -68,6 +96,9 @@ class NetworkRegistration:
             "junction_pairs": [list(p) for p in self.junction_pairs],
             "curve_rms_m": self.curve_rms,
             "fitness": self.fitness,
+            "evidence": self.evidence,
+            "alternative_evidence": self.alternative_evidence,
+            "hypotheses": self.hypotheses,
         }
 
 
@@ -102,9 +133,11 @@ def _directions(net: CenterlineNetwork, j: int) -> list[float]:
     return out
 
 
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
+def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    w = np.ones(len(src)) if w is None else np.asarray(w, dtype=np.float64)
+    cs = np.sum(src * w[:, None], axis=0) / w.sum()
+    cd = np.sum(dst * w[:, None], axis=0) / w.sum()
+    u, _, vt = np.linalg.svd(((src - cs) * w[:, None]).T @ (dst - cd))
     r = vt.T @ u.T
     if np.linalg.det(r) < 0:
         vt[-1] *= -1
@@ -113,6 +146,175 @@ def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     t[:3, :3] = r
     t[:3, 3] = cd - r @ cs
     return t
+
+
+def _plan_dirs(net: CenterlineNetwork, min_length: float) -> list[tuple[np.ndarray, float,
+                                                                         np.ndarray, float]]:
+    """Per edge of at least ``min_length`` metres: the centroid of its samples (3,), its
+    plan heading (radians, the principal direction of its samples in plan), and its
+    length."""
+    out = []
+    for e in net.edges:
+        if e.length < min_length:
+            continue
+        p = e.centerline.point_at(np.arange(0.0, e.length + 1e-9, 1.0))
+        c = p.mean(axis=0)
+        _, _, vt = np.linalg.svd(p[:, :2] - c[:2], full_matrices=False)
+        out.append((c, float(np.arctan2(vt[0, 1], vt[0, 0])), vt[0], e.length))
+    return out
+
+
+def _plan_score(tree2: cKDTree, moved: np.ndarray, radius: float) -> float:
+    """How many (moved) compared curve samples lie within ``radius`` of the reference curves
+    in plan (curve samples are 1 m apart: metres of common curve)."""
+    d, _ = tree2.query(moved[:, :2], distance_upper_bound=radius)
+    return float(np.sum(d < radius))
+
+
+def _candidates(ref_net: CenterlineNetwork, cmp_net: CenterlineNetwork, cmp_s: np.ndarray,
+                ref_s: np.ndarray, tree2: cKDTree, radius: float) -> list[tuple[float, np.ndarray]]:
+    """Coarse poses (yaw about the vertical and a translation), each with its plan score.
+
+    * junction onto junction, each branch direction at one onto each at the other;
+    * drift along drift: every edge of one epoch laid along every edge of the other (both
+      ways), slid along it a metre at a time. This needs no junction in either epoch: a
+      cross-cut walked in one survey only, or seen a few metres in, leaves the two
+      networks no junction in common, and the pose along the main drift then comes from
+      everything else the two share (their curves' overlap here, the surfaces later).
+    """
+    out: list[tuple[float, np.ndarray]] = []
+    for i, ji in enumerate(ref_net.junctions):
+        di = _directions(ref_net, i)
+        for j, jj in enumerate(cmp_net.junctions):
+            for a in di:
+                for b in _directions(cmp_net, j):
+                    t = _yaw_transform(a - b, jj.position, ji.position)
+                    out.append((_plan_score(tree2, apply_transform(t, cmp_s), radius), t))
+    for ce, ca, _, cl in _plan_dirs(cmp_net, 10.0):
+        for re_, ra, rd, rl in _plan_dirs(ref_net, 10.0):
+            for yaw in (ra - ca, ra - ca + np.pi):
+                base = _yaw_transform(yaw, ce, re_)  # centroid onto centroid
+                moved = apply_transform(base, cmp_s)
+                offsets = np.arange(-(rl + cl) / 2, (rl + cl) / 2 + 1e-9, 1.0)
+                shift = np.zeros((len(offsets), 3))
+                shift[:, :2] = offsets[:, None] * rd[None, :]
+                pts = (moved[None, :, :] + shift[:, None, :]).reshape(-1, 3)
+                d, _ = tree2.query(pts[:, :2], distance_upper_bound=radius)
+                score = np.sum((d < radius).reshape(len(offsets), -1), axis=1)
+                for k in np.flatnonzero(score >= max(0.5 * score.max(), 1)):
+                    t = base.copy()
+                    t[:3, 3] += shift[k]
+                    out.append((float(score[k]), t))
+    return out
+
+
+def _distinct(cands: list[tuple[float, np.ndarray]], centre: np.ndarray, most: int,
+              floor: float) -> list[tuple[float, np.ndarray]]:
+    """The best candidate of each distinct pose (the compared network's centre moved more
+    than 3 m apart, or turned more than 5 degrees apart), best first, at most ``most``,
+    scoring at least ``floor`` of the best."""
+    order = sorted(cands, key=lambda c: -c[0])
+    kept: list[tuple[float, np.ndarray, np.ndarray, float]] = []
+    for score, t in order:
+        if kept and score < floor * kept[0][0]:
+            break
+        p = apply_transform(t, centre[None])[0]
+        yaw = float(np.arctan2(t[1, 0], t[0, 0]))
+        if any(np.linalg.norm(p - q) < 3.0 and abs(np.angle(np.exp(1j * (yaw - y))))
+               < np.radians(5.0) for _, _, q, y in kept):
+            continue
+        kept.append((score, t, p, yaw))
+        if len(kept) == most:
+            break
+    return [(s_, t) for s_, t, _, _ in kept]
+
+
+def _plan_kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The weighted rigid motion in plan (a rotation about the vertical, a horizontal
+    translation) moving ``src`` (K, 2) onto ``dst``, as a 4 x 4 transform."""
+    cs = np.sum(src * w[:, None], axis=0) / w.sum()
+    cd = np.sum(dst * w[:, None], axis=0) / w.sum()
+    h = ((src - cs) * w[:, None]).T @ (dst - cd)
+    yaw = np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    c, s_ = np.cos(yaw), np.sin(yaw)
+    t = np.eye(4)
+    t[:2, :2] = [[c, -s_], [s_, c]]
+    t[:2, 3] = cd - t[:2, :2] @ cs
+    return t
+
+
+def _tilt_and_lift(src: np.ndarray, dst: np.ndarray, w: np.ndarray,
+                   min_spread: float = 2.0) -> np.ndarray:
+    """The small tilt and vertical shift that best carry the heights of ``src`` (K, 3) onto
+    those of ``dst``: ``dz = a dx + b dy + c`` by weighted least squares about the centroid,
+    the slopes damped along plan directions in which the samples spread less than
+    ``min_spread`` metres (curves along one drift fix its pitch, not the roll about it).
+    Returned as a 4 x 4 rigid transform (a rotation about the centroid)."""
+    from scipy.spatial.transform import Rotation
+
+    c = np.sum(src * w[:, None], axis=0) / w.sum()
+    x = np.column_stack([src[:, 0] - c[0], src[:, 1] - c[1], np.ones(len(src))])
+    dz = dst[:, 2] - src[:, 2]
+    a = (x * w[:, None]).T @ x
+    a[:2, :2] += np.eye(2) * w.sum() * min_spread**2
+    slope_a, slope_b, lift = np.linalg.solve(a, (x * w[:, None]).T @ dz)
+    r = Rotation.from_rotvec([slope_b, -slope_a, 0.0]).as_matrix()
+    t = np.eye(4)
+    t[:3, :3] = r
+    t[:3, 3] = c - r @ c + np.array([0.0, 0.0, lift])
+    return t
+
+
+def _align_curves(t: np.ndarray, cmp_s: np.ndarray, ref_s: np.ndarray, tree: cKDTree,
+                  radius: float, max_tilt_deg: float = 10.0) -> np.ndarray:
+    """ICP of the compared curve samples onto the reference ones with a shrinking match
+    radius (3, 1, 0.3, 0.3 m) and Tukey weights: a rigid motion in plan, then the small tilt
+    and lift of the compared frame. Curves are nearly lines, so a free 3-D rotation would
+    turn about them at will; the tilt is fitted only along the directions the matched
+    samples span, and never beyond ``max_tilt_deg`` from the start (SLAM maps are levelled
+    by their IMU). A step that lowers the curves' 3-D overlap (samples within ``radius``)
+    is not taken."""
+    def overlap(tt: np.ndarray) -> float:
+        d, _ = tree.query(apply_transform(tt, cmp_s), distance_upper_bound=radius)
+        return float(np.sum(d < radius))
+
+    cos_max = np.cos(np.radians(max_tilt_deg))
+    best, best_score = t, overlap(t)
+    for r in (3.0, 1.0, 0.3, 0.3):
+        moved = apply_transform(best, cmp_s)
+        d, k = tree.query(moved, distance_upper_bound=r)
+        m = np.isfinite(d)
+        if m.sum() < 10:
+            break
+        w = (1.0 - (d[m] / r) ** 2) ** 2
+        plan = _plan_kabsch(moved[m, :2], ref_s[k[m], :2], w)
+        lifted = apply_transform(plan, moved[m])
+        step = _tilt_and_lift(lifted, ref_s[k[m]], w) @ plan @ best
+        if (step[:3, :3] @ t[:3, :3].T)[2, 2] < cos_max:
+            break
+        score = overlap(step)
+        if score >= best_score:
+            best, best_score = step, score
+    return best
+
+
+def _evidence(t: np.ndarray, probe: np.ndarray, ref_tree: cKDTree, ref_net: CenterlineNetwork,
+              half: np.ndarray, fit_distance: float, against: float = 0.3) -> float:
+    """How well a pose explains the compared points: the share of ``probe`` points (moved by
+    ``t``) within ``fit_distance`` of the reference, less the share that land inside a drift
+    the reference scanned (within its half-width + 0.5 m of one of its curves, along it) but
+    farther than ``against`` from any reference point: where the reference saw rock or open
+    drift, a compared wall cannot be. Points beyond the reference's coverage count neither
+    way, so a pose is not rewarded for sliding its ends over more of the other epoch's
+    drift, only for its features meeting theirs."""
+    moved = apply_transform(t, probe)
+    d, _ = ref_tree.query(moved, distance_upper_bound=against)
+    on = d < fit_distance
+    pr = ref_net.project(moved, max_distance=float(half.max()) + 0.5)
+    hw = np.where(pr.branch < len(half), half[np.minimum(pr.branch, len(half) - 1)], -np.inf)
+    inside = pr.inside & (pr.distance <= hw + 0.5)
+    off = inside & ~np.isfinite(d)
+    return float(np.mean(on) - np.mean(off))
 
 
 def register_networks(
@@ -125,6 +327,10 @@ def register_networks(
     voxel: float = 0.1,
     fine_distance: float = 0.3,
     max_points: int = 400_000,
+    pool: int = 12,
+    hypotheses: int = 4,
+    fit_distance: float = 0.1,
+    distinct_distance: float = 10.0,
 ) -> NetworkRegistration:
     """Register the compared epoch onto the reference by the common part of their networks.
 
@@ -135,72 +341,99 @@ def register_networks(
     ref_net, cmp_net : CenterlineNetwork
         Their centreline networks.
     coarse_radius : float
-        A compared curve sample within this distance of the reference curves counts as common
-        in the coarse search, metres.
+        A compared curve sample within this distance of the reference curves (in plan)
+        counts as common in the coarse search, metres.
     voxel, fine_distance : float
         Voxel size and match distance of the final point-to-plane ICP, metres.
     max_points : int
         Points per epoch used by the ICP (thinned at random, seeded).
+    pool, hypotheses : int
+        Distinct coarse poses judged by their points after the curve alignment, and how many
+        of the best of those are carried through ICP; the one whose points the reference
+        explains best (:func:`_evidence`) is kept.
+    fit_distance : float
+        A compared point within this distance of the reference lies on it, metres.
+    distinct_distance : float
+        A hypothesis that ends farther than this from the chosen pose (the compared network's
+        centre, metres) is an alternative: its evidence is reported. Closer ones are slides
+        along a drift, which the registration check's translation fits judge.
 
     Raises
     ------
     RegistrationError
-        If either network has no junction (nothing fixes the position along the drifts: use
-        the single-tube registration), or less than 20 m of curve is common.
+        If less than 20 m of curve is common under every coarse pose.
     """
-    if not ref_net.junctions or not cmp_net.junctions:
-        raise RegistrationError(
-            "a network registration needs a junction in both epochs; one epoch shows none "
-            "(a single drift: use the single-tube detect)"
-        )
+    import open3d as o3d
+
     ref_s, cmp_s = _samples(ref_net), _samples(cmp_net)
-    tree = cKDTree(ref_s)
-    best = (-1.0, np.inf, np.eye(4))
-    for i, ji in enumerate(ref_net.junctions):
-        di = _directions(ref_net, i)
-        for j, jj in enumerate(cmp_net.junctions):
-            for a in di:
-                for b in _directions(cmp_net, j):
-                    t = _yaw_transform(a - b, jj.position, ji.position)
-                    d, _ = tree.query(apply_transform(t, cmp_s), distance_upper_bound=3.0)
-                    score = float(np.sum(d < coarse_radius))
-                    med = float(np.median(d[np.isfinite(d)])) if np.isfinite(d).any() else np.inf
-                    if score > best[0] or (score == best[0] and med < best[1]):
-                        best = (score, med, t)
-    if best[0] < 20:
+    tree, tree2 = cKDTree(ref_s), cKDTree(ref_s[:, :2])
+    cands = _candidates(ref_net, cmp_net, cmp_s, ref_s, tree2, coarse_radius)
+    if not cands or max(c[0] for c in cands) < 20:
+        best = max((c[0] for c in cands), default=0.0)
         raise RegistrationError(
-            f"the two networks share only {best[0]:.0f} m of centreline; do the epochs "
+            f"the two networks share only {best:.0f} m of centreline; do the epochs "
             "cover the same drifts?"
         )
-    t = best[2]
-    stages = {"coarse": t.tolist()}
-    for radius in (3.0, 1.0, 0.3, 0.3):
-        moved = apply_transform(t, cmp_s)
-        d, k = tree.query(moved, distance_upper_bound=radius)
-        m = np.isfinite(d)
-        if m.sum() < 10:
-            break
-        t = _kabsch(moved[m], ref_s[k[m]]) @ t
-    stages["curves"] = t.tolist()
     rng = np.random.default_rng(0)
     r = ref_xyz if len(ref_xyz) <= max_points else ref_xyz[rng.random(len(ref_xyz)) <
                                                            max_points / len(ref_xyz)]
     c = cmp_xyz if len(cmp_xyz) <= max_points else cmp_xyz[rng.random(len(cmp_xyz)) <
                                                            max_points / len(cmp_xyz)]
-    t = icp_plane(r, c, t, voxel=voxel, max_distance=1.0, iterations=30)
-    t = icp_plane(r, c, t, voxel=voxel, max_distance=fine_distance, iterations=60)
-    stages["fine"] = t.tolist()
+    origin = np.round(r[:: max(len(r) // 1000, 1)].mean(axis=0), -3)
+    ref_pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(r - origin)).voxel_down_sample(
+        voxel)
+    ref_pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
+    rp, rn = np.asarray(ref_pc.points) + origin, np.asarray(ref_pc.normals)
+    ref_tree = cKDTree(rp)
+    probe = c[rng.choice(len(c), min(len(c), 20_000), replace=False)]
+    half = np.array([float(e.centerline.meta.get("half_width_m", 1.0)) for e in ref_net.edges])
+
+    def evidence(tt: np.ndarray) -> float:
+        return _evidence(tt, probe, ref_tree, ref_net, half, fit_distance)
+
+    judged = []
+    for score, t0 in _distinct(cands, cmp_s.mean(axis=0), pool, 0.5):
+        t1 = _align_curves(t0, cmp_s, ref_s, tree, coarse_radius)
+        judged.append((evidence(t1), score, t0, t1))
+    judged.sort(key=lambda x: -x[0])
+    # each hypothesis through a quick ICP (the compared points thinned to 0.25 m), judged;
+    # the chosen one through the full ICP
+    runs = []
+    for ev0, score, t0, t1 in judged[:hypotheses]:
+        t = icp_plane(rp, c, t1, voxel=2.5 * voxel, max_distance=1.0, iterations=20,
+                      ref_normals=rn)
+        t = icp_plane(rp, c, t, voxel=2.5 * voxel, max_distance=fine_distance, iterations=20,
+                      ref_normals=rn)
+        runs.append({"coarse_score_m": score, "evidence_curves": ev0, "evidence": evidence(t),
+                     "stages": {"coarse": t0.tolist(), "curves": t1.tolist(),
+                                "quick": t.tolist()}, "transform": t})
+    runs.sort(key=lambda x: -x["evidence"])
+    chosen = runs[0]
+    t = icp_plane(rp, c, chosen["transform"], voxel=voxel, max_distance=1.0, iterations=30,
+                  ref_normals=rn)
+    t = icp_plane(rp, c, t, voxel=voxel, max_distance=fine_distance, iterations=60,
+                  ref_normals=rn)
+    chosen["stages"]["fine"] = t.tolist()
+    chosen["evidence"] = evidence(t)
+    centre = cmp_s.mean(axis=0)
+    p0 = apply_transform(t, centre[None])[0]
+    others = [x["evidence"] for x in runs[1:]
+              if np.linalg.norm(apply_transform(x["transform"], centre[None])[0] - p0)
+              > distinct_distance]
+    alternative = max(others, default=-1.0)
+    d, _ = ref_tree.query(apply_transform(t, probe), distance_upper_bound=fit_distance)
+    fitness = float(np.mean(np.isfinite(d)))
     moved_s = apply_transform(t, cmp_s)
     d, _ = tree.query(moved_s, distance_upper_bound=0.5)
     rms = float(np.sqrt(np.mean(d[np.isfinite(d)] ** 2))) if np.isfinite(d).any() else np.nan
-    dr, _ = cKDTree(r).query(apply_transform(t, c[:: max(len(c) // 50_000, 1)]),
-                             distance_upper_bound=fine_distance)
     pairs = []
     for ji in ref_net.junctions:
         for jj in cmp_net.junctions:
             if np.linalg.norm(apply_transform(t, jj.position[None])[0] - ji.position) < 1.0:
                 pairs.append((ji.id, jj.id))
-    return NetworkRegistration(t, stages, pairs, rms, float(np.mean(np.isfinite(dr))))
+    return NetworkRegistration(t, chosen["stages"], pairs, rms, fitness,
+                               [{k: v for k, v in x.items() if k != "transform"} for x in runs],
+                               chosen["evidence"], alternative)
 
 
 def common_lengths(

@@ -548,6 +548,11 @@ class NetworkCheck:
         4 cm along a direction nothing fixes (the fit sticks where it starts).
     coherent : float
         As in :class:`RegistrationCheck`.
+    alternative_margin : float
+        The registration's evidence for its chosen pose less that for the best other pose
+        more than 10 m away
+        (:attr:`~tunneldef.registration.network.NetworkRegistration.evidence` and
+        ``alternative_evidence``; NaN when not given).
     """
 
     cross_residual: float
@@ -559,6 +564,7 @@ class NetworkCheck:
     probe_ends: np.ndarray
     spread: float
     coherent: float = np.nan
+    alternative_margin: float = np.nan
 
     @property
     def registration_sigma(self) -> float:
@@ -578,7 +584,71 @@ class NetworkCheck:
             "probe_ends": [[num(v) for v in row] for row in self.probe_ends],
             "spread": num(self.spread),
             "coherent": num(self.coherent),
+            "alternative_margin": num(self.alternative_margin),
         }
+
+
+def edge_centreline_differences(
+    ref_net: Any, cmp_edges: list[np.ndarray], *, step: float = 0.5, margin: float = 1.0,
+    min_samples: int = 10,
+) -> dict[int, float]:
+    """Per reference edge, how far the compared epoch's own centreline runs from it after
+    registration: the p95 distance, over the common part, of the compared curves' samples
+    from the edge's curve, divided by sqrt(2) (about either curve's p95 error, as
+    :attr:`RegistrationCheck.centreline_difference` for a single drift).
+
+    Static rock relief and overbreak move both epochs' section centres alike, so they do not
+    show here, where they make each epoch's centres scatter about its own curve; a centreline
+    that wanders with the noise, or reads a wall on clutter in one epoch, does.
+
+    Parameters
+    ----------
+    ref_net : CenterlineNetwork
+        The reference network.
+    cmp_edges : list of ndarray, shape (K, 3)
+        The compared network's curves as points in the reference frame (every edge, after
+        the registration and any drift correction).
+    step : float
+        Spacing of the compared samples used, metres.
+    margin : float
+        Samples within this of an edge's ends or junction zones are left out, metres.
+    min_samples : int
+        Fewer common samples on an edge give NaN (nothing to judge).
+
+    Returns
+    -------
+    dict of int -> float
+        Edge id -> figure, metres (NaN where the epochs share too little of the edge).
+    """
+    out: dict[int, float] = {}
+    pieces = []
+    for pts in cmp_edges:
+        if len(pts) < 2:
+            continue
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        idx = np.searchsorted(s, np.arange(0.0, s[-1], step))
+        tan = np.gradient(pts, axis=0)
+        tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
+        pieces.append((pts[idx], tan[idx]))
+    for e in ref_net.edges:
+        half = float(e.centerline.meta.get("half_width_m", 1.0))
+        dist = []
+        for pts, tan in pieces:
+            pr = e.centerline.project(pts)
+            keep = ((pr.chainage > margin) & (pr.chainage < e.length - margin)
+                    & (pr.distance < half))
+            for a, b in e.zones:
+                keep &= (pr.chainage < a - margin) | (pr.chainage > b + margin)
+            if not keep.any():
+                continue
+            t_ref = e.centerline.frame_at(pr.chainage[keep])[0]
+            parallel = np.abs(np.einsum("ij,ij->i", t_ref, tan[keep])) > 0.9
+            dist.append(pr.distance[keep][parallel])
+        d = np.concatenate(dist) if dist else np.zeros(0)
+        out[e.id] = (float(np.percentile(d, 95)) / np.sqrt(2.0) if d.size >= min_samples
+                     else np.nan)
+    return out
 
 
 def translation_fit(
