@@ -147,6 +147,10 @@ class CenterlineConfig:
     min_slices: int = _p(5, "ours: fewer accepted slices and there is no centreline")
     max_points: int = _p(2_000_000, "ours: larger clouds are thinned at random (seeded) before "
                                     "slicing; the lines need ~1e4 points per slice, not 1e5")
+    remove_strays: bool = _p(True, "ours: drop stray points (a return 130 m away, far "
+                                   "clusters, ghosts) before the PCA frame and the slicing "
+                                   "(tunneldef.outliers.remove_strays); one far point "
+                                   "stretches the slicing over empty metres")
     vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)",
                        ("world", "pca"))
 
@@ -267,6 +271,11 @@ class NetworkConfig:
                                       "edge, used only when it lowers the residual by more "
                                       "than 0.5 mm RMS; false switches it off")
     drift_block: float = _p(20.0, "ours: length of the blocks of the drift correction, m")
+    max_left_out_length: float = _p(15.0, "ours: a dead end up to this long whose own checks "
+                                          "fail (a cross-cut seen a few metres in from the "
+                                          "main drift) is left out of the measurement, said "
+                                          "in the log and the summary, rather than refusing "
+                                          "the run; 0 refuses, m")
 
 
 @dataclass(frozen=True)
@@ -283,6 +292,16 @@ class QualityConfig:
                                             "correlated along the tunnel), m; 3 cm is the "
                                             "accuracy the sweep (benchmarks/sweep.py) holds "
                                             "centrelines to")
+    max_edge_scatter: float = _p(0.05, "ours: drift networks: the same figure for each edge of "
+                                       "the reference network, m. A rough drift's centres "
+                                       "scatter with its rock, which the curve smooths on "
+                                       "purpose: on 24 reference edges of random networks "
+                                       "with 2-3 cm relief (benchmarks/network_sweep.py) the "
+                                       "curve lay 0.2-1.0 x that scatter from the design axis "
+                                       "(12-35 mm of scatter, 5-29 mm off), so 3 cm refused "
+                                       "sound rough drifts; 5 cm still refuses a section read "
+                                       "on the wrong walls. No scatter shows a bias shared "
+                                       "along a drift: one arch read 18 mm off with 9 mm")
     max_fit_excess: float = _p(0.008, "ours: cross-epoch point-to-plane misfit the scans' own "
                                       "noise does not explain, each sigma taken patch by patch "
                                       "(a 20 m synthetic pair at +-1.2 cm noise: correct 1.8 mm, "
@@ -306,6 +325,13 @@ class QualityConfig:
                                        "end within 1 cm of one another (the accuracy the sweep "
                                        "holds registrations to); a wider spread means the "
                                        "slide sticks where it starts")
+    min_alternative_margin: float = _p(0.02, "ours: drift networks: the chosen pose's evidence "
+                                             "(share of compared points the reference "
+                                             "explains, less those it contradicts) must beat "
+                                             "every other pose more than 10 m away by this "
+                                             "much, else the networks fit two places alike (a "
+                                             "look-alike cross-cut along a plain drift); 0.02 "
+                                             "is hundreds of points of a 20 000-point probe")
     max_pose_mismatch: float = _p(1.0, "ours: the section images at the registered position "
                                        "may match worse than at the best shift by at most "
                                        "their noise (coarse_shift's own tolerance)")

@@ -35,6 +35,7 @@ from .quality import (
     centerline_checks,
     deformation_checks,
     edge_checks,
+    edge_difference_checks,
     network_registration_checks,
     registration_checks,
     topology_checks,
@@ -54,8 +55,12 @@ _MAX_SCALE_RATIO = 4.0
 _MIN_OVERLAP = 0.2
 
 
-def check_epochs(ref: Cloud, cmp: Cloud) -> None:
+def check_epochs(ref: Cloud, cmp: Cloud, *, network: bool = False) -> None:
     """Refuse pairs that cannot be compared: too small, or in different units.
+
+    ``network``: the epochs are drift networks, which need not be elongated as a whole (an
+    80 m drift with a 40 m cross-cut is not); only their sizes are checked here, and their
+    drifts' widths once their centrelines are known (:func:`detect_network`).
 
     Raises
     ------
@@ -63,6 +68,8 @@ def check_epochs(ref: Cloud, cmp: Cloud) -> None:
     """
     check_points(ref.xyz, name="reference", min_points=_MIN_POINTS)
     check_points(cmp.xyz, name="compared", min_points=_MIN_POINTS)
+    if network:
+        return
     with epoch_named("reference"):
         fr = principal_frame(ref.xyz)
     with epoch_named("compared"):
@@ -183,8 +190,13 @@ def register_epochs(
 
 
 def _check_section_sizes(ref_ex: Any, cmp_ex: Any) -> None:
+    """Refuse epochs whose drifts differ in width by more than ``_MAX_SCALE_RATIO`` (the
+    median width of the fitted slices of a single-drift extraction, or of every edge of a
+    network)."""
     def median_size(ex: Any) -> float:
-        vals = [r.width for r in ex.slices if getattr(r, "ok", True) and np.isfinite(r.width)]
+        slices = ex.slices if hasattr(ex, "slices") else [
+            r for e in ex.network.edges for r in e.slices]
+        vals = [r.width for r in slices if getattr(r, "ok", True) and np.isfinite(r.width)]
         return float(np.median(vals)) if vals else float("nan")
 
     wr, wc = median_size(ref_ex), median_size(cmp_ex)
@@ -394,6 +406,48 @@ def detect(
 # ---------------------------------------------------------------------------------------------
 
 
+def _carried(before: np.ndarray, after: np.ndarray, pts: np.ndarray, k: int = 16) -> np.ndarray:
+    """The displacement (K, 3) that moved the points ``before`` to ``after`` (a drift
+    correction), carried to other points ``pts``: the median over their ``k`` nearest points
+    within 5 m (0 where none)."""
+    from scipy.spatial import cKDTree
+
+    sub = slice(None, None, max(len(before) // 200_000, 1))
+    src, disp = before[sub], after[sub] - before[sub]
+    d, j = cKDTree(src).query(pts, k=k, distance_upper_bound=5.0)
+    out = np.zeros((len(pts), 3))
+    found = np.isfinite(d)
+    for i in range(3):
+        v = np.where(found, disp[np.minimum(j, len(src) - 1), i], np.nan)
+        some = found.any(axis=1)
+        out[some, i] = np.nanmedian(v[some], axis=1)
+    return out
+
+
+def _check_edges(extraction: Any, report: QualityReport, config: Config, epoch: str) -> None:
+    """Every edge's checks into ``report``; a short dead end that fails its own checks (a
+    cross-cut seen a few metres in, mostly its mouth) is left out of the network instead
+    (``[network] max_left_out_length``), with a warning and the reason in the network's
+    ``meta["left_out"]``. The compared epoch's checks are advisory: its curves only feed
+    the registration, which is checked on its own (:func:`~tunneldef.quality.edge_checks`)."""
+    from .centerline.network import JUNCTION
+
+    net = extraction.network
+    drop: dict[int, str] = {}
+    for e in net.edges:
+        checks = edge_checks(e, config.quality, epoch, JUNCTION, advisory=epoch == "compared")
+        bad = [c for c in checks if not c.passed]
+        if bad and net.is_dead_end(e.id) and e.length <= config.network.max_left_out_length:
+            c = bad[0]
+            op = ">" if c.comparison == "<=" else "<"
+            drop[e.id] = f"{c.name} {c.figure:.4g} {op} limit {c.limit:.4g}"
+            log.warning("%s network: dead end %s (%.1f m) left out of the measurement: %s",
+                        epoch, e.name, e.length, drop[e.id])
+            continue
+        report.add(checks)
+    extraction.network = net.without(drop)
+
+
 @dataclass
 class NetworkResult:
     """Everything :func:`detect_network` found.
@@ -468,6 +522,10 @@ class NetworkResult:
                                    if self.registration_check is not None else None),
             "quality": self.quality.to_dict(),
             "branches": edges,
+            "branches_left_out": {
+                "reference": self.ref_network.meta.get("left_out", []),
+                "compared": self.cmp_network.meta.get("left_out", []),
+            },
             "danger_threshold_m": self.danger_threshold,
             "danger_zones": self.zones,
             "sections": self.sections,
@@ -498,7 +556,7 @@ def detect_network(
         As :func:`detect`; :class:`~tunneldef.errors.NetworkError` for a network the method
         cannot vouch for.
     """
-    from .centerline.network import JUNCTION, extract_network
+    from .centerline.network import extract_network
     from .deformation import (
         compute_deformation,
         danger_threshold,
@@ -507,24 +565,23 @@ def detect_network(
     )
     from .network import NO_BRANCH
     from .registration.network import common_lengths, correct_drift, register_networks
-    from .registration.verify import verify_network
+    from .registration.verify import edge_centreline_differences, verify_network
 
     config = config or Config()
     qc = config.quality
     report = QualityReport(enforced=qc.enforce)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    check_epochs(ref, cmp)
+    check_epochs(ref, cmp, network=True)
     lines = {"slicing": config.slicing, "settings": config.centerline,
              "network": config.network}
     with epoch_named("reference"):
         ref_net = extract_network(ref.xyz, **lines, progress=under(progress, "reference network"))
-    for e in ref_net.network.edges:
-        report.add(edge_checks(e, qc, "reference", JUNCTION))
+    _check_edges(ref_net, report, config, "reference")
     with epoch_named("compared"):
         cmp_net = extract_network(cmp.xyz, **lines, progress=under(progress, "compared network"))
-    for e in cmp_net.network.edges:
-        report.add(edge_checks(e, qc, "compared", JUNCTION))
+    _check_edges(cmp_net, report, config, "compared")
+    _check_section_sizes(ref_net, cmp_net)
     timings["centrelines"] = time.perf_counter() - t0
     t = time.perf_counter()
     reg = register_networks(ref.xyz, cmp.xyz, ref_net.network, cmp_net.network)
@@ -532,15 +589,20 @@ def detect_network(
     moved = cmp.transformed(transform)
     net = ref_net.network
     drift: dict[str, Any] = {"used": False, "enabled": config.network.drift_correction}
+    cmp_curves = [e.centerline.transformed(transform).points for e in cmp_net.network.edges]
     if config.network.drift_correction:
         xyz, drift = correct_drift(ref.xyz, moved.xyz, net, block=config.network.drift_block)
         drift["enabled"] = True
+        if drift["used"]:
+            cmp_curves = [p + _carried(moved.xyz, xyz, p) for p in cmp_curves]
         moved = Cloud(xyz, moved.fields, moved.meta)
     notify(progress, "registration check", 0.0)
     check = verify_network(ref.xyz, moved.xyz, net.length,
                            points_per_metre=config.registration.max_points_per_metre)
+    check = dataclasses.replace(check, alternative_margin=reg.evidence - reg.alternative_evidence)
     notify(progress, "registration check", 1.0)
     report.add(network_registration_checks(check, qc))
+    report.add(edge_difference_checks(edge_centreline_differences(net, cmp_curves), qc))
     reg_sigma = check.registration_sigma
     timings["registration"] = time.perf_counter() - t
     t = time.perf_counter()

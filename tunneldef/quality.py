@@ -11,6 +11,8 @@ the checks are not enforced, and then marks every output "unverified".
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,6 +20,8 @@ import numpy as np
 
 from .config import QualityConfig
 from .errors import TunnelDefError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "Check",
@@ -30,6 +34,7 @@ __all__ = [
     "deformation_checks",
     "edge_checks",
     "network_registration_checks",
+    "edge_difference_checks",
 ]
 
 #: The words every output of a run whose checks failed carries (summary, file headers).
@@ -68,6 +73,10 @@ class Check:
         What the user can do when it fails.
     note : str
         How the figure was made.
+    advisory : bool
+        The figure judges something no output depends on alone (the compared epoch's own
+        centreline, which only feeds a registration that is checked on its own): a failure
+        is reported, as a warning, but neither stops the run nor leaves it unverified.
     """
 
     name: str
@@ -78,6 +87,7 @@ class Check:
     passed: bool
     advice: str = ""
     note: str = ""
+    advisory: bool = False
 
     def reason(self) -> str:
         """One line: the failed check, its figure against its limit, and the advice."""
@@ -98,7 +108,8 @@ class Check:
             "limit": num(self.limit),
             "comparison": self.comparison,
             "unit": self.unit,
-            "verdict": "pass" if self.passed else "fail",
+            "verdict": "pass" if self.passed else ("warning" if self.advisory else "fail"),
+            "advisory": self.advisory,
             "note": self.note,
         }
 
@@ -132,7 +143,13 @@ class QualityReport:
 
     @property
     def failed(self) -> list[Check]:
-        return [c for c in self.checks if not c.passed]
+        """The failed checks that count (not advisory)."""
+        return [c for c in self.checks if not c.passed and not c.advisory]
+
+    @property
+    def warnings(self) -> list[Check]:
+        """The failed advisory checks."""
+        return [c for c in self.checks if not c.passed and c.advisory]
 
     @property
     def verified(self) -> bool:
@@ -148,7 +165,10 @@ class QualityReport:
             One line naming the failed check, its figure and limit, and what to try.
         """
         self.checks.extend(checks)
-        bad = [c for c in checks if not c.passed]
+        for c in checks:
+            if not c.passed and c.advisory:
+                log.warning("quality warning (advisory, not enforced): %s", c.reason())
+        bad = [c for c in checks if not c.passed and not c.advisory]
         if bad and self.enforced:
             raise QualityError(
                 f"quality check failed: {bad[0].reason()} (--force or [quality] enforce = "
@@ -163,6 +183,7 @@ class QualityReport:
             "enforced": self.enforced,
             "status": "verified" if self.verified else UNVERIFIED,
             "failed": [c.name for c in self.failed],
+            "warnings": [c.name for c in self.warnings],
             "checks": [c.to_dict() for c in self.checks],
         }
 
@@ -299,12 +320,14 @@ def deformation_checks(deformation: Any, qc: QualityConfig) -> list[Check]:
     ]
 
 
-def edge_checks(edge: Any, qc: QualityConfig, epoch: str, junction: str) -> list[Check]:
+def edge_checks(edge: Any, qc: QualityConfig, epoch: str, junction: str, *,
+                advisory: bool = False) -> list[Check]:
     """Checks of one edge of a centreline network (a
     :class:`~tunneldef.network.NetworkEdge`): the share of its slices outside junction zones
     that show a tunnel section, and the scatter of their centres about the curve. A short
     branch (too few sections for a curve: the axis moved onto its centres) gets only the
-    first."""
+    first. ``advisory``: the compared epoch's edges, whose curves only feed the registration
+    (checked on its own): reported, not enforced."""
     name = f"{epoch}_network.edge{edge.id}"
     records = [r for r in edge.slices if r.reason != junction]
     ok = [r for r in records if r.ok]
@@ -320,9 +343,11 @@ def edge_checks(edge: Any, qc: QualityConfig, epoch: str, junction: str) -> list
         scatter = float(edge.centerline.meta.get("centre_scatter_p95_m",
                                                  np.percentile(res, 95)))
         out.append(_check(f"{name}.curve_uncertainty", scatter,
-                          qc.max_curve_uncertainty, "<=", "m", advice,
+                          qc.max_edge_scatter, "<=", "m", advice,
                           f"95th percentile distance of the {len(ok)} used slice centres "
                           "from the most flexible curve through them (their local scatter)"))
+    if advisory:
+        out = [dataclasses.replace(c, advisory=True) for c in out]
     return out
 
 
@@ -347,4 +372,32 @@ def network_registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                "(one drift direction only, or too sparse and noisy)",
                "largest distance between where the fit ends from the registered pose and "
                "from 2 cm off along +-x and +-y"),
+        _check("registration.alternative_margin", check.alternative_margin,
+               qc.min_alternative_margin, ">=", "",
+               "the compared network fits another place nearly as well as the registered "
+               "one (a look-alike cross-cut along a plain drift); a survey that shares more "
+               "junctions or a distinct drift settles it",
+               "evidence of the chosen pose less that of the best other pose more than 10 m "
+               "away (evidence: the share of compared points on the reference less the share "
+               "inside a drift the reference scanned but off its surfaces, after ICP from "
+               "each; with no other pose left, the chosen evidence + 1)"),
     ]
+
+
+def edge_difference_checks(differences: dict[int, float], qc: QualityConfig) -> list[Check]:
+    """Per reference edge, the two epochs' centrelines after registration
+    (:func:`~tunneldef.registration.verify.edge_centreline_differences`). Advisory: the
+    compared curve's own error enters it (a compared main drift 5.5 cm from its own centres
+    read 4.3 cm here over a reference curve 8 mm from the truth), and the compared curve feeds
+    only the registration, which is checked on its own."""
+    out = []
+    for k, v in sorted(differences.items()):
+        c = _check(f"registration.edge{k}.centreline_difference", v,
+                   qc.max_centreline_difference, "<=", "m",
+                   f"the two epochs' centrelines of edge {k} do not agree after registration "
+                   "(sparse or noisy sections, or a wrong registration); denser scans or a "
+                   "larger [slicing] thickness may help",
+                   "p95 distance of the compared centreline from the reference one over the "
+                   "common part, / sqrt(2)")
+        out.append(dataclasses.replace(c, advisory=True))
+    return out

@@ -471,9 +471,10 @@ def fit_stiffest(
     Returns
     -------
     centerline : Centerline
-        Its ``meta`` holds ``ctrl_spacing_m``, ``systematic_misfit_m`` and
-        ``centre_scatter_p95_m``: the p95 distance of the centres from the ``min_spacing``
-        curve, their local scatter (the centreline's uncertainty figure).
+        Its ``meta`` holds ``ctrl_spacing_m``, ``systematic_misfit_m``,
+        ``centre_scatter_p95_m`` (the p95 distance from the ``min_spacing`` curve of the
+        centres its robust fit kept: their local scatter, the centreline's uncertainty
+        figure) and ``centre_outliers`` (the centres it gave no weight).
     fit : NurbsFit
     """
     q = np.asarray(centres, dtype=np.float64)
@@ -483,7 +484,12 @@ def fit_stiffest(
         spacings.append(spacings[-1] * 2)
     flex, flex_fit = fit_centerline(q, params=st, degree=degree, ctrl_spacing=min_spacing,
                                     sample_step=sample_step)
-    scatter = float(np.percentile(flex.project(q).distance, 95))
+    # the scatter of the centres that shaped the curve: a gross outlier (no weight in the
+    # robust fit, e.g. one slice half in a niche 4.5 cm off) moves no curve, and on a short
+    # branch of a dozen centres it alone would be the 95th percentile
+    inliers = flex_fit.data_weights > 0
+    dist = flex.project(q).distance
+    scatter = float(np.percentile(dist[inliers] if inliers.sum() >= 3 else dist, 95))
     chosen, misfit = None, np.nan
     for spacing in reversed(spacings[1:]):
         try:
@@ -503,7 +509,8 @@ def fit_stiffest(
     cl, fit, spacing = chosen
     cl.meta.update(meta or {})
     cl.meta.update({"ctrl_spacing_m": spacing, "systematic_misfit_m": misfit,
-                    "centre_scatter_p95_m": scatter})
+                    "centre_scatter_p95_m": scatter,
+                    "centre_outliers": int(np.sum(~inliers))})
     return cl, fit
 
 
