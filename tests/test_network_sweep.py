@@ -1,0 +1,28 @@
+"""A reduced network sweep (benchmarks/network_sweep.py) in CI: small random drift networks,
+surveyed as walkers survey them (stubs, cross-cuts walked in one survey only, ramps), end
+correct or refused with one line, never wrong with exit 0."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from tunneldef.config import Config
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from network_sweep import draw, run_case, table  # noqa: E402
+
+#: sparse pairs of 30-45 m main drifts, 0.1-0.15 M points per epoch
+CI_CONFIG = Config().replace(slicing={"min_points": 100})
+
+
+def test_reduced_network_sweep_has_no_silent_wrong_answer() -> None:
+    cases = [run_case(draw(s, 60_000, (30.0, 45.0), 60.0), CI_CONFIG)
+             for s in (7001, 7002, 7004, 7009, 7011)]
+    report = table(cases)
+    assert not [c for c in cases if c.outcome in ("WRONG", "CRASH")], report
+    for c in cases:
+        if c.outcome == "refused":
+            assert c.reason and "\n" not in c.reason, report
+    # 7001, 7002 and 7009 were measured correct (registration 1-3 mm)
+    assert sum(c.outcome == "correct" for c in cases) >= 3, report
