@@ -147,10 +147,10 @@ class CenterlineConfig:
     min_slices: int = _p(5, "ours: fewer accepted slices and there is no centreline")
     max_points: int = _p(2_000_000, "ours: larger clouds are thinned at random (seeded) before "
                                     "slicing; the lines need ~1e4 points per slice, not 1e5")
-    remove_strays: bool = _p(True, "ours: drop stray points (a return 130 m away, far "
-                                   "clusters, ghosts) before the PCA frame and the slicing "
-                                   "(tunneldef.outliers.remove_strays); one far point "
-                                   "stretches the slicing over empty metres")
+    remove_strays: bool = _p(True, "ours: drop far stray points (a return 130 m away, small "
+                                   "far clusters: what lies 3 m beyond the box of 99.8 % of "
+                                   "the points) before the PCA frame and the slicing; one far "
+                                   "point stretched the slicing over 130 m of nothing")
     vertical: str = _p("world", "ours: keep world z as vertical ('pca' = paper §3.1.1)",
                        ("world", "pca"))
 

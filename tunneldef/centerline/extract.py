@@ -786,19 +786,18 @@ def extract_centerline(
         logger.info("centreline: %d of %d points used", int(keep.sum()), len(pts))
         pts = pts[keep]
     if c.remove_strays:
-        from ..outliers import remove_strays
+        from ..outliers import robust_extent
 
-        # only what lies beyond the kept points' box goes: a return 130 m away or a far
-        # cluster stretches the frame and the slicing, a ghost inside the drift does not and
-        # is left to the slices' own tests (the outlier tests also thin a terrestrial scan's
-        # sparse far end, whose last slices then fail: the real Freiberg drift lost 1.5 m)
-        kept = remove_strays(pts, min_neighbours=1, std_ratio=8.0)
-        if kept.sum() >= need and not kept.all():
-            lo, hi = pts[kept].min(axis=0) - 1.0, pts[kept].max(axis=0) + 1.0
-            inside = np.all((pts >= lo) & (pts <= hi), axis=1)
-            if not inside.all():
-                logger.info("centreline: %d far stray points left out", int((~inside).sum()))
-                pts = pts[inside]
+        # a return 130 m away or a small far cluster stretches the frame and the slicing:
+        # what lies more than 3 m beyond the box of the 0.1-99.9 % of the points goes; a ghost
+        # inside the drift is left to the slices' own tests (the full stray tests also thin a
+        # terrestrial scan's sparse far end, whose last slices then fail, and cost a second
+        # per epoch)
+        box = robust_extent(pts)
+        inside = np.all((pts >= box.lower - 3.0) & (pts <= box.upper + 3.0), axis=1)
+        if not inside.all() and inside.sum() >= need:
+            logger.info("centreline: %d far stray points left out", int((~inside).sum()))
+            pts = pts[inside]
     frame = principal_frame(pts, vertical=c.vertical)
     roll = estimate_roll(frame.to_local(pts), sl, c)
     if roll:
