@@ -206,7 +206,10 @@ def test_a_single_tube_run_refuses_a_network_at_once(pair, tmp_path, capsys,  # 
     assert code == 2 and "the network stages were chosen" in capsys.readouterr().err
 
 
-def test_detect_network_measures_each_branch() -> None:
+def test_detect_network_measures_each_branch(tmp_path) -> None:  # noqa: ANN001
+    """Each branch measured on its own edge; the edges' deformation runs in 8 m chainage
+    tiles (Dask tasks, as the CLI runs it), which give the untiled values
+    (tests/test_tiles.py)."""
     from tunneldef.pipeline import detect_network
     from tunneldef.synth import DeformationSpec
     from tunneldef.synth.network import BranchDeformation
@@ -216,7 +219,7 @@ def test_detect_network_measures_each_branch() -> None:
     p = make_network_pair(network=small_network(), deformations=defs, ref_coverage=None,
                           cmp_coverage=None, density=100.0, drift=0.0, equipment=False,
                           seed=4, yaw_deg=70.0)
-    r = detect_network(p.ref, p.cmp)
+    r = detect_network(p.ref, p.cmp, tiles={"tile_length": 8.0, "workdir": tmp_path})
     err = np.linalg.norm(apply_transform(r.transform, p.cmp.xyz)
                          - apply_transform(p.truth.transform, p.cmp.xyz), axis=1)
     assert np.mean(err) < 0.005

@@ -317,17 +317,18 @@ def cmd_detect(args: argparse.Namespace) -> int:
     log.info("reference %s: %s points; compared %s: %s points", ref_path.name, f"{len(ref):,}",
              cmp_path.name, f"{len(cmp):,}")
     progress = None if args.quiet else StageLogger(log)
-    if _as_network(args, [ref, cmp], config):
-        from .pipeline import detect_network
+    network = _as_network(args, [ref, cmp], config)
+    with open_engine(scheduler=args.scheduler, workers=args.workers,
+                     memory_gb=args.memory) as engine:
+        tiles = {"tile_length": args.tile_length, "memory_gb": engine.tile_memory_gb,
+                 "engine": engine, "workdir": tile_dir}
+        if network:
+            from .pipeline import detect_network
 
-        if args.no_drift_correction:
-            config = config.replace(network={"drift_correction": False})
-        result = detect_network(ref, cmp, config, progress=progress)
-    else:
-        with open_engine(scheduler=args.scheduler, workers=args.workers,
-                         memory_gb=args.memory) as engine:
-            tiles = {"tile_length": args.tile_length, "memory_gb": engine.tile_memory_gb,
-                     "engine": engine, "workdir": tile_dir}
+            if args.no_drift_correction:
+                config = config.replace(network={"drift_correction": False})
+            result = detect_network(ref, cmp, config, progress=progress, tiles=tiles)
+        else:
             result = detect(ref, cmp, config, progress=progress, tiles=tiles)
     write_with_fields(out, cmp_path, result.cloud.xyz, result.cloud.fields, keep=keep,
                       strict=args.strict, note=result.cloud.meta.get("note"))

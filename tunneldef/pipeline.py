@@ -541,6 +541,7 @@ class NetworkResult:
 def detect_network(
     ref: Cloud, cmp: Cloud, config: Config | None = None, *,
     progress: ProgressCallback | None = None,
+    tiles: dict[str, Any] | None = None,
 ) -> NetworkResult:
     """Deformation of a drift network: every compared point measured against its branch.
 
@@ -549,6 +550,10 @@ def detect_network(
     of the two graphs (:func:`~tunneldef.registration.network.register_networks`), then per
     reference edge the single-tube deformation, sections and danger zones on the compared
     points that belong to that edge (and the reference points near it).
+
+    ``tiles``: as for :func:`detect`, the keyword arguments of
+    :func:`tunneldef.tiles.tiled_deformation`; each edge's deformation then runs in its own
+    chainage tiles.
 
     Raises
     ------
@@ -624,9 +629,17 @@ def detect_network(
             continue
         notify(progress, "deformation", e.id / len(net.edges))
         proj = e.centerline.project(moved.xyz[mc])
-        d = compute_deformation(ref.xyz[mr], moved.xyz[mc], e.centerline,
-                                settings=config.deformation, projection=proj,
-                                registration_sigma=reg_sigma)
+        if tiles is None:
+            d = compute_deformation(ref.xyz[mr], moved.xyz[mc], e.centerline,
+                                    settings=config.deformation, projection=proj,
+                                    registration_sigma=reg_sigma)
+        else:  # the edge's own chainage tiles, as Dask tasks
+            from .tiles import tiled_deformation
+
+            d = tiled_deformation(ref.xyz[mr], moved.xyz[mc], e.centerline,
+                                  settings=config.deformation,
+                                  projection=(proj.chainage, proj.lateral, proj.vertical),
+                                  registration_sigma=reg_sigma, **tiles)
         report.add([dataclasses.replace(c, name=c.name.replace(".", f".edge{e.id}.", 1))
                     for c in deformation_checks(d, qc)])
         results.append((e, mc, d))
