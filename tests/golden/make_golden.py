@@ -4,6 +4,10 @@
 ``golden.json``: bit for bit (its hash), or, where the last bits differ, the same NaN count and
 sums within 1e-9 m per point. A change that is meant to move results regenerates the file:
 ``python tests/golden/make_golden.py`` (and the commit says why the results moved).
+
+The file also records the versions of the libraries whose arithmetic the results depend on
+(:func:`environment`): another numpy, scipy or Open3D orders floating-point work differently,
+and the test then holds the fields to what a surveyor reads, not to their last bits.
 """
 
 from __future__ import annotations
@@ -17,6 +21,19 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1]))
+
+
+LIBRARIES = ("numpy", "scipy", "open3d", "scikit-image", "geomdl", "laspy")
+
+
+def environment() -> dict[str, str]:
+    """Python's and the numerical libraries' versions the fingerprints were taken with."""
+    import platform
+    from importlib.metadata import version
+
+    env = {"python": platform.python_version()}
+    env.update({name: version(name) for name in LIBRARIES})
+    return env
 
 
 def pairs() -> dict[str, object]:
@@ -64,6 +81,9 @@ def fingerprint(spec: object) -> dict[str, object]:
             "abs_sum": float(np.abs(f[ok]).sum()),
         }
     out["transform"] = np.asarray(res.transform).tolist()
+    # the input's bounds: a pose is compared by how far it moves these corners, since a
+    # rotation's last digits move survey-size translations by millimetres
+    out["bounds"] = [pair.cmp.xyz.min(axis=0).tolist(), pair.cmp.xyz.max(axis=0).tolist()]
     out["zones"] = len(res.zones)
     out["sections"] = len(res.sections)
     out["failed_checks"] = res.quality.to_dict()["failed"] if res.quality else []
@@ -71,7 +91,8 @@ def fingerprint(spec: object) -> dict[str, object]:
 
 
 def main() -> None:
-    data = {name: fingerprint(spec) for name, spec in pairs().items()}
+    data: dict[str, object] = {"environment": environment()}
+    data.update({name: fingerprint(spec) for name, spec in pairs().items()})
     (HERE / "golden.json").write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
     print(f"wrote {HERE / 'golden.json'}")
 
