@@ -175,3 +175,47 @@ def test_a_far_stray_does_not_stretch_a_single_drift() -> None:
     q = ex.quality_of_curve
     assert q.usable_share > 0.8
     assert ex.centerline.length < 31.0
+
+
+def test_the_curves_alignment_levels_a_pose_a_little_off() -> None:
+    """Sweep case 1000003: the best coarse pose sat 0.75 m along the main drift and untilted
+    (the compared frame is tilted 0.9 degrees: 0.7 m of height across the survey); the curves'
+    ICP refused the step that levelled it because one curve sample fell out of reach, and
+    the survey ended 5.5 m along its drift. Here one compared sample the reference does not
+    share leaves reach as the pose levels; the truncated sum of distances to the reference
+    curves still falls, and the step is taken (counting samples within reach refused it)."""
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    from tunneldef.registration.network import _align_curves
+
+    def curves(step: float) -> np.ndarray:  # a main drift and a cross-cut off it at 90 m
+        main = np.arange(0.0, 110.0 + 1e-9, step)
+        xc = np.arange(step, 37.0 + 1e-9, step)
+        return np.vstack([np.column_stack([main, np.zeros_like(main), np.zeros_like(main)]),
+                          np.column_stack([np.full_like(xc, 90.0), xc, np.zeros_like(xc)])])
+
+    ref_s = curves(0.1)
+    truth = np.eye(4)  # compared -> reference: a yaw, a 0.9 degree tilt, a survey offset
+    truth[:3, :3] = Rotation.from_euler("zyx", [13.4, 0.6, -0.65], degrees=True).as_matrix()
+    truth[:3, 3] = [-624.9, 1380.9, 933.1]
+    inv = np.linalg.inv(truth)
+    cmp_s = apply_transform(inv, curves(1.0))  # the compared curves in their own frame
+    # the coarse pose: the yaw right, no tilt, 0.75 m along the main drift, heights met at
+    # the compared curves' centroid
+    start = np.eye(4)
+    start[:3, :3] = Rotation.from_euler("z", 13.4, degrees=True).as_matrix()
+    start[:3, 3] = [0.75, 0.0, 0.0] + (curves(1.0) - cmp_s @ start[:3, :3].T).mean(axis=0)
+    rng = np.random.default_rng(3)
+    cmp_s = cmp_s + rng.normal(0.0, 0.03, cmp_s.shape)
+    # and one sample the reference does not share (the compared epoch's own niche), 0.95 m
+    # above the main drift under the coarse pose and out of reach once levelled
+    cmp_s = np.vstack([cmp_s, apply_transform(np.linalg.inv(start), np.array([[5.0, 0, 0.95]]))])
+    got = _align_curves(start, cmp_s, ref_s, cKDTree(ref_s), 1.0)
+    ends = apply_transform(inv, np.array([[0.0, 0, 0], [110.0, 0, 0], [90.0, 37.0, 0]]))
+    before = apply_transform(start, ends) - apply_transform(truth, ends)
+    after = apply_transform(got, ends) - apply_transform(truth, ends)
+    assert np.abs(before[:, 2]).max() > 0.3, before
+    # levelled and laid on the curves; the slide along the drift is left to the points' ICP
+    assert np.abs(after[:, 1:]).max() < 0.1, (before, after)
+    assert np.abs(after[:, 0]).max() < np.abs(before[:, 0]).max(), (before, after)
