@@ -10,8 +10,9 @@ PySide2 (Debian's ``python3-pyside2``; the harness needs it, the plugin does not
 1. selects the reference in the DB tree and triggers *Extract centerline*;
 2. selects reference then compared and triggers *Register to reference*;
 3. triggers *Detect deformation*, ticking "Also move the original" in the plugin's dialog;
-4. triggers *Detect deformation* again and presses Cancel on the progress dialog after
-   ``TDCC_CANCEL_AFTER`` seconds (default 1);
+4. triggers *Detect deformation* again and presses Cancel on the progress dialog as soon as it
+   is shown, or ``TDCC_CANCEL_AFTER`` seconds after the trigger (default 0: a fixed delay
+   lets a fast machine reach the last stages first);
 5. optionally (``TDCC_SCREENSHOT=path.png``) shows the compared cloud's colours and grabs the
    screen with ImageMagick's ``import -window root``.
 
@@ -283,7 +284,7 @@ class Driver:
         _, action = self.acts[name]
         t_start = time.time()
         if step == "cancel":
-            self.cancel_at = t_start + float(os.environ.get("TDCC_CANCEL_AFTER", "1.0"))
+            self.cancel_at = t_start + float(os.environ.get("TDCC_CANCEL_AFTER", "0"))
 
         def done(*_args) -> None:  # runs after the runtime's own slot returned
             action.triggered.disconnect(done)
