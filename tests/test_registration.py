@@ -232,6 +232,32 @@ def test_axial_shift_on_a_chamber():
     assert res.informative and 0 < res.uncertainty < 0.01
 
 
+def test_sliding_nearest_equals_the_tree_query():
+    # the along-axis solver's cached candidates give exactly the tree's nearest neighbours and
+    # reach cut-offs, across slides that decide most points from the cache, leave some to the
+    # tree and, past a few centimetres, draw the candidates again
+    from scipy.spatial import cKDTree
+
+    from tunneldef.registration.axial import _SlidingNearest
+
+    pair = _pair(equipment=False, seed=6)
+    ref = pair.ref.xyz
+    cmp = pair.truth.cmp_xyz_in_ref[::7]
+    tan = pair.truth.centerline.frame_at(pair.truth.centerline.project(cmp).chainage)[0]
+    tree = cKDTree(ref)
+    near = _SlidingNearest(tree, ref, cmp, tan, reach=0.3)
+    for delta, bound in ((0.0, 0.3), (0.002, 0.3), (0.004, 0.15), (-0.01, 0.15),
+                         (0.03, 0.075), (0.2, 0.3), (0.2004, 0.02)):
+        d, j = near.query(delta, bound)
+        d0, j0 = tree.query(cmp + delta * tan, distance_upper_bound=bound)
+        assert np.array_equal(j, j0), delta
+        assert np.array_equal(np.isfinite(d), np.isfinite(d0))
+        np.testing.assert_allclose(d[np.isfinite(d)], d0[np.isfinite(d0)], atol=1e-12)
+    assert 2 <= near.queries < 12  # the cache did most of the work, and was drawn again
+    with pytest.raises(ValueError, match="reach"):
+        near.query(0.0, 0.5)
+
+
 def test_axial_shift_featureless_is_reported_unknown():
     pair = _pair(equipment=False, chamber=False, seed=7)
     cl, _, _, pr, pc = _unrolled(pair, 1.37)

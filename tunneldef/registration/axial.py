@@ -203,6 +203,77 @@ def noise_kernel(residuals: np.ndarray) -> float:
     return 4.685 * 1.4826 * float(np.median(np.abs(r))) if r.size else 0.0
 
 
+class _SlidingNearest:
+    """Nearest reference point of ``x + delta * t`` for points ``x`` that only slide along
+    their unit directions ``t``: exactly what ``tree.query(x + delta * t, distance_upper_bound=
+    bound)`` gives, at a fraction of the cost when ``delta`` changes by millimetres.
+
+    The ``k`` nearest neighbours within ``reach`` of ``x + delta0 * t`` are found once. A point
+    at most ``dk`` from its base has no other reference point closer than ``dk - |delta -
+    delta0|`` after a slide, so a candidate nearer than that is the true nearest neighbour, and
+    when both are beyond ``bound`` there is none within it; the few points this does not decide
+    are queried in the tree, and the candidates are drawn again when they are more than
+    30 %. Squared distances along the slide are ``|x0 - c|^2 + D (2 t.(x0 - c) + D)`` with
+    ``D = delta - delta0``: one pass over the candidates per step instead of a tree query.
+    """
+
+    _K = 8
+    _REBASE = 0.3  # share of undecided points that draws the candidates again
+    MARGIN = 0.05  # m of reach beyond the widest bound: slides this long need no tree query
+
+    def __init__(
+        self, tree: cKDTree, ref_xyz: np.ndarray, xyz: np.ndarray, tangents: np.ndarray,
+        reach: float, delta: float = 0.0,
+    ) -> None:
+        self.tree, self.ref, self.xyz, self.tan, self.reach = tree, ref_xyz, xyz, tangents, reach
+        self.queries = 0
+        self._base(delta)
+
+    def _base(self, delta: float) -> None:
+        p = self.xyz + delta * self.tan
+        d, j = self.tree.query(
+            p, k=self._K, distance_upper_bound=self.reach, workers=query_workers(len(p))
+        )
+        self.queries += 1
+        self.delta0 = delta
+        missing = ~np.isfinite(d)
+        self.cand = np.where(missing, 0, j)
+        off = p[:, None, :] - self.ref[self.cand]  # (M, K, 3)
+        self.a = np.where(missing, np.inf, np.einsum("ijk,ijk->ij", off, off))
+        self.b = 2.0 * np.einsum("ijk,ik->ij", off, self.tan)
+        # every reference point outside the set lies at least this far from the base point
+        self.dk = np.where(missing[:, -1], self.reach, d[:, -1])
+
+    def query(self, delta: float, bound: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(d, j)`` as ``tree.query(x + delta * t, distance_upper_bound=bound)``."""
+        if bound > self.reach:
+            raise ValueError(f"bound {bound} beyond the candidates' reach {self.reach}")
+        for attempt in range(2):
+            step = delta - self.delta0
+            d2 = self.a + step * (self.b + step)
+            best = np.argmin(d2, axis=1)
+            rows = np.arange(len(best))
+            dmin = np.sqrt(np.maximum(d2[rows, best], 0.0))
+            free = self.dk - abs(step)  # no point outside the set is nearer than this
+            nearest = dmin < free
+            none = ~nearest & (np.minimum(dmin, free) >= bound)
+            undecided = ~(nearest | none)
+            if attempt == 0 and undecided.mean() > self._REBASE:
+                self._base(delta)
+                continue
+            break
+        within = nearest & (dmin <= bound)
+        d = np.where(within, dmin, np.inf)
+        j = np.where(within, self.cand[rows, best], len(self.ref))
+        if undecided.any():
+            p = self.xyz[undecided] + delta * self.tan[undecided]
+            d[undecided], j[undecided] = self.tree.query(
+                p, distance_upper_bound=bound, workers=query_workers(len(p))
+            )
+            self.queries += 1
+        return d, j
+
+
 def fine_shift(
     ref_xyz: np.ndarray,
     ref_normals: np.ndarray,
@@ -249,15 +320,18 @@ def fine_shift(
         ``shift`` along ``tangents``, metres.
     """
     tree = tree if tree is not None else cKDTree(ref_xyz)
+    reach = 1.5 * max(kernels) + _SlidingNearest.MARGIN
+    nearest = _SlidingNearest(tree, ref_xyz, cmp_xyz, tangents, reach)
     delta = 0.0
     scale = 0.0  # noise_kernel of the residuals, once the widest kernel settled
     for stage, kernel in enumerate(kernels):
         kernel = max(kernel, scale)
+        if 1.5 * kernel > nearest.reach:  # a noise kernel wider than the first
+            reach = 1.5 * kernel + _SlidingNearest.MARGIN
+            nearest = _SlidingNearest(tree, ref_xyz, cmp_xyz, tangents, reach, delta)
         for _ in range(iterations):
             p = cmp_xyz + delta * tangents
-            d, j = tree.query(
-                p, distance_upper_bound=1.5 * kernel, workers=query_workers(len(p))
-            )
+            d, j = nearest.query(delta, 1.5 * kernel)
             ok = np.isfinite(d)
             if ok.sum() < 20:
                 return AxialShift(0.0, float("inf"), False, 0)
