@@ -8,15 +8,17 @@ differs, by its NaN count and sums, which must agree to 1e-9 m per point: thread
 the last bits but never a value a surveyor reads.
 
 With other versions of numpy, scipy, Open3D, scikit-image, geomdl or laspy (a fresh install
-takes the newest), floating-point work is ordered differently and the registration moves by
+takes the newest), or on another processor model (numpy and OpenBLAS choose their SIMD kernels
+by it: the same versions on two models moved a registration by 0.15 mm), floating-point work
+is ordered differently and the registration moves by
 fractions of a millimetre; the fields are then held to what a surveyor reads: the deformation
 fields within 0.1 mm per point on average, chainage within 1 mm, the registration within 2 mm,
 the same danger zones and sections (measured between numpy 2.4 / scipy 1.17 / Open3D 0.20 and
 the versions before: 0.03 mm, 0.15 mm and 0.5 mm), and the flags and codes on all but 0.5 %
 of the points. The level of detection is held within half of itself: it holds the misfit the
-scans' noise does not explain, a difference of two near-equal sigmas (19.8 mm across the
-epochs against their own 19.4 / 19.9 mm on the sparse rough pair, where the mean LoD95 went
-from 13.6 to 8.9 mm with the pose 0.5 mm apart).
+scans' noise does not explain beyond the sampling error of the two near-equal sigmas it is the
+difference of (20.2 mm across the epochs against their own 19.4 / 19.6 mm on the sparse rough
+pair), and a registration's coherent misfit, both of which move with the last digits of a pose.
 """
 
 from __future__ import annotations

@@ -27,13 +27,36 @@ LIBRARIES = ("numpy", "scipy", "open3d", "scikit-image", "geomdl", "laspy")
 
 
 def environment() -> dict[str, str]:
-    """Python's and the numerical libraries' versions the fingerprints were taken with."""
+    """Python's and the numerical libraries' versions the fingerprints were taken with, and the
+    processor: numpy and OpenBLAS choose their SIMD kernels by it, which orders sums differently
+    (the same versions on two processor models moved a registration by 0.15 mm)."""
     import platform
     from importlib.metadata import version
 
     env = {"python": platform.python_version()}
     env.update({name: version(name) for name in LIBRARIES})
+    env["cpu"] = _processor()
     return env
+
+
+def _processor() -> str:
+    """The processor's model name and the SIMD extensions numpy dispatches to on it."""
+    import platform
+
+    model = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
+            if line.lower().startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+        simd = [k for k in __cpu_dispatch__ if __cpu_features__.get(k)]
+    except ImportError:  # a numpy without these internals: the model name alone
+        simd = []
+    return " ".join([platform.machine(), model or platform.processor(), *simd]).strip()
 
 
 def pairs() -> dict[str, object]:

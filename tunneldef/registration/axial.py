@@ -215,11 +215,15 @@ class _SlidingNearest:
     are queried in the tree, and the candidates are drawn again when they are more than
     30 %. Squared distances along the slide are ``|x0 - c|^2 + D (2 t.(x0 - c) + D)`` with
     ``D = delta - delta0``: one pass over the candidates per step instead of a tree query.
+    That formula rounds differently from the tree, so a point whose two nearest candidates, or
+    whose nearest candidate and the bound, lie within ``_EPS`` of each other goes to the tree:
+    the answer is the tree's to the last index, not only to the millimetre.
     """
 
     _K = 8
     _REBASE = 0.3  # share of undecided points that draws the candidates again
     MARGIN = 0.05  # m of reach beyond the widest bound: slides this long need no tree query
+    _EPS = 1e-7  # m: distances this close to a tie or to the bound are left to the tree
 
     def __init__(
         self, tree: cKDTree, ref_xyz: np.ndarray, xyz: np.ndarray, tangents: np.ndarray,
@@ -253,10 +257,15 @@ class _SlidingNearest:
             d2 = self.a + step * (self.b + step)
             best = np.argmin(d2, axis=1)
             rows = np.arange(len(best))
-            dmin = np.sqrt(np.maximum(d2[rows, best], 0.0))
+            two = np.sqrt(np.maximum(np.partition(d2, 1, axis=1)[:, :2], 0.0))
+            dmin, second = two[:, 0], two[:, 1]
             free = self.dk - abs(step)  # no point outside the set is nearer than this
-            nearest = dmin < free
-            none = ~nearest & (np.minimum(dmin, free) >= bound)
+            # the tree's own rounding decides near-ties and points near the bound
+            eps = self._EPS
+            with np.errstate(invalid="ignore"):  # inf - inf where no candidate is in reach
+                apart = second - dmin > eps
+            nearest = (dmin < free - eps) & apart & (np.abs(dmin - bound) > eps)
+            none = ~nearest & (np.minimum(dmin, free) >= bound + eps)
             undecided = ~(nearest | none)
             if attempt == 0 and undecided.mean() > self._REBASE:
                 self._base(delta)
