@@ -55,6 +55,7 @@ _NORMAL_RADIUS = 0.15  # m, as the registration's normals
 _PROBE = 0.02  # m: the slide is started this far either side of the registered position
 _PATCH = 2.0  # m: patches whose mean misfit is a registration error (coherent_misfit)
 _Q75 = 1.1503  # 75th percentile of |N(0, 1)|
+_EXCESS_Z = 2.0  # standard errors of cross^2 - own^2 that are the sigmas' own noise
 
 
 @dataclass(frozen=True)
@@ -114,8 +115,13 @@ class RegistrationCheck:
         the point-to-plane slide found nothing to hold on to or the section correlation has
         equally good matches more than 1 m apart (then ``pose_mismatch`` judges).
     coherent : float
-        The misfit shared by neighbouring points (:func:`coherent_misfit`); with ``excess``
-        it makes :attr:`registration_sigma`.
+        The misfit shared by neighbouring points (:func:`coherent_misfit`); with
+        ``excess_beyond_noise`` it makes :attr:`registration_sigma`.
+    excess_beyond_noise : float
+        ``sqrt(max(cross^2 - own^2 - 2 se, 0))`` with ``se`` the standard error of
+        ``cross^2 - own^2`` from the two sigmas' own (each a median over the patches): the
+        part of ``excess`` that the sigmas' sampling does not explain. NaN when not computed
+        (then ``excess`` stands in).
     """
 
     cross_residual: float
@@ -136,11 +142,12 @@ class RegistrationCheck:
     probe_shifts: tuple[float, float] = (np.nan, np.nan)
     axial_spread: float = np.nan
     coherent: float = np.nan
+    excess_beyond_noise: float = np.nan
 
     @property
     def registration_sigma(self) -> float:
         """The registration's error along the normals passed to the level of detection."""
-        return _registration_sigma(self.excess, self.coherent)
+        return _registration_sigma(_beyond(self), self.coherent)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (non-finite values become None)."""
@@ -288,45 +295,65 @@ def _coherent(patches: PatchMedians | None) -> float:
 def _typical_spread(
     patches: PatchMedians | None, src: np.ndarray, dst: np.ndarray, dst_n: np.ndarray,
     tree: cKDTree,
-) -> float:
+) -> tuple[float, float]:
     """The point-to-plane sigma of ``src`` against ``dst`` as the median, over the full
     2 m patches, of each patch's robust sigma about its own median (the whole cloud's when
-    fewer than 10 patches are full). A change covering a minority of the patches (a sag, a
-    bulge, a new coal load) leaves it alone, where it widened a sigma over all the points
-    (three changes of 15-40 mm over a few square metres each took a correctly registered
-    16 m pair 7-8 mm beyond the scans' own noise); what the patches' medians share is the
-    coherent misfit's part."""
+    fewer than 10 patches are full), and that figure's own standard error. A change
+    covering a minority of the patches (a sag, a bulge, a new coal load) leaves it alone,
+    where it widened a sigma over all the points (three changes of 15-40 mm over a few
+    square metres each took a correctly registered 16 m pair 7-8 mm beyond the scans' own
+    noise); what the patches' medians share is the coherent misfit's part."""
     if patches is None or patches.full.sum() < 10:
-        return _plane_sigma(src, dst, dst_n, tree)
-    return float(np.median(patches.spread[patches.full]))
+        sigma = _plane_sigma(src, dst, dst_n, tree)
+        # a MAD sigma of n normal residuals varies by sqrt(1.36 / (2 n)) of itself
+        return sigma, sigma * float(np.sqrt(1.36 / (2 * max(len(src), 1))))
+    spread = patches.spread[patches.full]
+    # the sampling error of a median of n values: 1.2533 of their sigma / sqrt(n)
+    se = 1.2533 * 1.4826 * float(np.median(np.abs(spread - np.median(spread))))
+    return float(np.median(spread)), se / float(np.sqrt(len(spread)))
 
 
 def _fit_figures(
     ref: np.ndarray, cmp: np.ndarray
 ) -> tuple[float, float, float, float, float, float]:
     """Cross-epoch and within-epoch robust point-to-plane sigmas of two registered subsets:
-    (cross, own_ref, own_cmp, ratio, excess, coherent), see :class:`RegistrationCheck`."""
+    (cross, own_ref, own_cmp, ratio, excess, excess_beyond_noise, coherent), see
+    :class:`RegistrationCheck`."""
     ref_a, ref_b = ref[0::2], ref[1::2]
     cmp_a, cmp_b = cmp[0::2], cmp[1::2]
     ref_bn = normals(ref_b, _NORMAL_RADIUS)
     ref_tree = cKDTree(ref_b)
     patches = patch_medians(cmp_a, ref_b, ref_bn, ref_tree)
     coherent = _coherent(patches)
-    cross = _typical_spread(patches, cmp_a, ref_b, ref_bn, ref_tree)
-    own_ref = _typical_spread(
+    cross, cross_se = _typical_spread(patches, cmp_a, ref_b, ref_bn, ref_tree)
+    own_ref, ref_se = _typical_spread(
         patch_medians(ref_a, ref_b, ref_bn, ref_tree), ref_a, ref_b, ref_bn, ref_tree
     )
     if len(cmp_b) >= 100:
         cmp_bn, cmp_tree = normals(cmp_b, _NORMAL_RADIUS), cKDTree(cmp_b)
-        own_cmp = _typical_spread(
+        own_cmp, cmp_se = _typical_spread(
             patch_medians(cmp_a, cmp_b, cmp_bn, cmp_tree), cmp_a, cmp_b, cmp_bn, cmp_tree
         )
     else:
-        own_cmp = np.inf
-    own = max(own_ref, own_cmp)
+        own_cmp, cmp_se = np.inf, np.inf
+    own, own_se = max((own_ref, ref_se), (own_cmp, cmp_se))
     ratio = cross / own if own > 0 and np.isfinite(own) else np.inf
-    excess = float(np.sqrt(max(cross**2 - own**2, 0.0))) if np.isfinite(ratio) else np.inf
-    return cross, own_ref, own_cmp, float(ratio), excess, coherent
+    if not np.isfinite(ratio):
+        return cross, own_ref, own_cmp, float(ratio), np.inf, np.inf, coherent
+    excess = float(np.sqrt(max(cross**2 - own**2, 0.0)))
+    # cross^2 - own^2 is a difference of two near-equal squares, each known to its sampling
+    # error only: what lies within _EXCESS_Z of that error is the sigmas' noise, not misfit
+    # (on a sparse rough pair 0.15 mm of pose between two processors moved the plain excess
+    # from about 3 to 4.7 mm, the mean LoD95 from 8 to 12 mm)
+    noise = 2.0 * float(np.hypot(cross * cross_se, own * own_se))
+    beyond = float(np.sqrt(max(cross**2 - own**2 - _EXCESS_Z * noise, 0.0)))
+    return cross, own_ref, own_cmp, float(ratio), excess, beyond, coherent
+
+
+def _beyond(check: Any) -> float:
+    """A check's excess beyond the sigmas' noise, or its plain excess where not computed."""
+    b = check.excess_beyond_noise
+    return b if np.isfinite(b) or not np.isfinite(check.excess) else check.excess
 
 
 def _registration_sigma(excess: float, coherent: float) -> float:
@@ -396,7 +423,7 @@ def verify_registration(
     mp = _head(ma, n_image)  # the compared section image's points
     ref = ref_all[:n_plane]
     cmp = cmp_all[inside_all][:n_plane]
-    cross, own_ref, own_cmp, ratio, excess, coherent = _fit_figures(ref, cmp)
+    cross, own_ref, own_cmp, ratio, excess, beyond, coherent = _fit_figures(ref, cmp)
 
     rp = cl.project(ref_big)
     # a quarter of the common stretch at most: beyond it a short overlap matches partial
@@ -462,6 +489,7 @@ def verify_registration(
         cmp_residual=own_cmp,
         residual_ratio=float(ratio),
         excess=excess,
+        excess_beyond_noise=beyond,
         coherent=coherent,
         coarse_shift=float(c_shift),
         coarse_spread=float(c_spread),
@@ -553,6 +581,8 @@ class NetworkCheck:
         more than 10 m away
         (:attr:`~tunneldef.registration.network.NetworkRegistration.evidence` and
         ``alternative_evidence``; NaN when not given).
+    excess_beyond_noise : float
+        As in :class:`RegistrationCheck`.
     """
 
     cross_residual: float
@@ -565,11 +595,12 @@ class NetworkCheck:
     spread: float
     coherent: float = np.nan
     alternative_margin: float = np.nan
+    excess_beyond_noise: float = np.nan
 
     @property
     def registration_sigma(self) -> float:
         """The registration's error along the normals passed to the level of detection."""
-        return _registration_sigma(self.excess, self.coherent)
+        return _registration_sigma(_beyond(self), self.coherent)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (non-finite values become None)."""
@@ -579,7 +610,7 @@ class NetworkCheck:
         return {
             "cross_residual": num(self.cross_residual), "ref_residual": num(self.ref_residual),
             "cmp_residual": num(self.cmp_residual), "residual_ratio": num(self.residual_ratio),
-            "excess": num(self.excess),
+            "excess": num(self.excess), "excess_beyond_noise": num(self.excess_beyond_noise),
             "remaining": [num(v) for v in self.remaining],
             "probe_ends": [[num(v) for v in row] for row in self.probe_ends],
             "spread": num(self.spread),
@@ -722,7 +753,7 @@ def verify_network(
     tree = cKDTree(ref)
     near = np.isfinite(tree.query(cmp, distance_upper_bound=0.3, workers=-1)[0])
     cmp = cmp[near]
-    cross, own_ref, own_cmp, ratio, excess, coherent = _fit_figures(ref, cmp)
+    cross, own_ref, own_cmp, ratio, excess, beyond, coherent = _fit_figures(ref, cmp)
     ref_n = normals(ref, _NORMAL_RADIUS)
     # a translation has three unknowns: a fifth of the registration's points per metre holds
     # it to a fraction of a millimetre (the five fits took 93 s of a 0.5 M-point network)
@@ -734,4 +765,4 @@ def verify_network(
     spread = (float(np.max(np.linalg.norm(every[:, None] - every[None], axis=2)))
               if np.all(np.isfinite(every)) else np.inf)
     return NetworkCheck(cross, own_ref, own_cmp, ratio, excess, remaining, ends, spread,
-                        coherent)
+                        coherent, excess_beyond_noise=beyond)
