@@ -118,10 +118,9 @@ class RegistrationCheck:
         The misfit shared by neighbouring points (:func:`coherent_misfit`); with
         ``excess_beyond_noise`` it makes :attr:`registration_sigma`.
     excess_beyond_noise : float
-        ``sqrt(max(cross^2 - own^2 - 2 se, 0))`` with ``se`` the standard error of
-        ``cross^2 - own^2`` from the two sigmas' own (each a median over the patches): the
-        part of ``excess`` that the sigmas' sampling does not explain. NaN when not computed
-        (then ``excess`` stands in).
+        The excess taken patch by patch and beyond its own sampling error
+        (:func:`_paired_excess`): the registration's part of the LoD95 with ``coherent``.
+        NaN when too few patches pair up (then ``excess`` stands in).
     """
 
     cross_residual: float
@@ -183,6 +182,8 @@ class PatchMedians:
         Robust sigma of the point misfits (m).
     spread : ndarray, shape (P,)
         Each patch's robust sigma (1.4826 MAD) about its own median (m; NaN when empty).
+    key : ndarray of int64, shape (P, 3)
+        Each patch's cell index (``floor(xyz / cell)``): the same patch in another cloud.
     """
 
     cell: np.ndarray
@@ -191,6 +192,7 @@ class PatchMedians:
     full: np.ndarray
     sigma: float
     spread: np.ndarray
+    key: np.ndarray
 
     @property
     def noise(self) -> np.ndarray:
@@ -212,7 +214,7 @@ def patch_medians(
     if ok.sum() < 100:
         return None
     p, nrm = src[ok], dst_n[j[ok]]
-    _, cells = np.unique(np.floor(p / cell).astype(np.int64), axis=0, return_inverse=True)
+    key, cells = np.unique(np.floor(p / cell).astype(np.int64), axis=0, return_inverse=True)
     cells = cells.ravel()
     # normals carry no sign: turn each to agree with its patch's main normal (the structure
     # tensor's first eigenvector), so that one offset reads with one sign across the patch
@@ -243,7 +245,7 @@ def patch_medians(
     point_cell = np.full(len(src), -1, dtype=np.int64)
     idx = np.flatnonzero(ok)
     point_cell[idx[keep]] = ck
-    return PatchMedians(point_cell, median, n, full, sigma, spread)
+    return PatchMedians(point_cell, median, n, full, sigma, spread, key)
 
 
 def coherent_misfit(
@@ -295,27 +297,22 @@ def _coherent(patches: PatchMedians | None) -> float:
 def _typical_spread(
     patches: PatchMedians | None, src: np.ndarray, dst: np.ndarray, dst_n: np.ndarray,
     tree: cKDTree,
-) -> tuple[float, float]:
+) -> float:
     """The point-to-plane sigma of ``src`` against ``dst`` as the median, over the full
     2 m patches, of each patch's robust sigma about its own median (the whole cloud's when
-    fewer than 10 patches are full), and that figure's own standard error. A change
-    covering a minority of the patches (a sag, a bulge, a new coal load) leaves it alone,
-    where it widened a sigma over all the points (three changes of 15-40 mm over a few
-    square metres each took a correctly registered 16 m pair 7-8 mm beyond the scans' own
-    noise); what the patches' medians share is the coherent misfit's part."""
+    fewer than 10 patches are full). A change covering a minority of the patches (a sag, a
+    bulge, a new coal load) leaves it alone, where it widened a sigma over all the points
+    (three changes of 15-40 mm over a few square metres each took a correctly registered
+    16 m pair 7-8 mm beyond the scans' own noise); what the patches' medians share is the
+    coherent misfit's part."""
     if patches is None or patches.full.sum() < 10:
-        sigma = _plane_sigma(src, dst, dst_n, tree)
-        # a MAD sigma of n normal residuals varies by sqrt(1.36 / (2 n)) of itself
-        return sigma, sigma * float(np.sqrt(1.36 / (2 * max(len(src), 1))))
-    spread = patches.spread[patches.full]
-    # the sampling error of a median of n values: 1.2533 of their sigma / sqrt(n)
-    se = 1.2533 * 1.4826 * float(np.median(np.abs(spread - np.median(spread))))
-    return float(np.median(spread)), se / float(np.sqrt(len(spread)))
+        return _plane_sigma(src, dst, dst_n, tree)
+    return float(np.median(patches.spread[patches.full]))
 
 
 def _fit_figures(
     ref: np.ndarray, cmp: np.ndarray
-) -> tuple[float, float, float, float, float, float]:
+) -> tuple[float, float, float, float, float, float, float]:
     """Cross-epoch and within-epoch robust point-to-plane sigmas of two registered subsets:
     (cross, own_ref, own_cmp, ratio, excess, excess_beyond_noise, coherent), see
     :class:`RegistrationCheck`."""
@@ -325,29 +322,57 @@ def _fit_figures(
     ref_tree = cKDTree(ref_b)
     patches = patch_medians(cmp_a, ref_b, ref_bn, ref_tree)
     coherent = _coherent(patches)
-    cross, cross_se = _typical_spread(patches, cmp_a, ref_b, ref_bn, ref_tree)
-    own_ref, ref_se = _typical_spread(
-        patch_medians(ref_a, ref_b, ref_bn, ref_tree), ref_a, ref_b, ref_bn, ref_tree
-    )
+    cross = _typical_spread(patches, cmp_a, ref_b, ref_bn, ref_tree)
+    ref_patches = patch_medians(ref_a, ref_b, ref_bn, ref_tree)
+    own_ref = _typical_spread(ref_patches, ref_a, ref_b, ref_bn, ref_tree)
+    cmp_patches = None
     if len(cmp_b) >= 100:
         cmp_bn, cmp_tree = normals(cmp_b, _NORMAL_RADIUS), cKDTree(cmp_b)
-        own_cmp, cmp_se = _typical_spread(
-            patch_medians(cmp_a, cmp_b, cmp_bn, cmp_tree), cmp_a, cmp_b, cmp_bn, cmp_tree
-        )
+        cmp_patches = patch_medians(cmp_a, cmp_b, cmp_bn, cmp_tree)
+        own_cmp = _typical_spread(cmp_patches, cmp_a, cmp_b, cmp_bn, cmp_tree)
     else:
-        own_cmp, cmp_se = np.inf, np.inf
-    own, own_se = max((own_ref, ref_se), (own_cmp, cmp_se))
+        own_cmp = np.inf
+    own = max(own_ref, own_cmp)
     ratio = cross / own if own > 0 and np.isfinite(own) else np.inf
     if not np.isfinite(ratio):
         return cross, own_ref, own_cmp, float(ratio), np.inf, np.inf, coherent
     excess = float(np.sqrt(max(cross**2 - own**2, 0.0)))
-    # cross^2 - own^2 is a difference of two near-equal squares, each known to its sampling
-    # error only: what lies within _EXCESS_Z of that error is the sigmas' noise, not misfit
-    # (on a sparse rough pair 0.15 mm of pose between two processors moved the plain excess
-    # from about 3 to 4.7 mm, the mean LoD95 from 8 to 12 mm)
-    noise = 2.0 * float(np.hypot(cross * cross_se, own * own_se))
-    beyond = float(np.sqrt(max(cross**2 - own**2 - _EXCESS_Z * noise, 0.0)))
+    beyond = _paired_excess(patches, ref_patches if own_ref >= own_cmp else cmp_patches)
     return cross, own_ref, own_cmp, float(ratio), excess, beyond, coherent
+
+
+def _paired_excess(cross: PatchMedians | None, own: PatchMedians | None) -> float:
+    """The fit excess patch by patch, beyond its own sampling error: ``sqrt(max(D - 2 se, 0))``
+    with ``D`` the median over the 2 m patches full in both of ``cross_i^2 - own_i^2`` (each
+    patch's sigma across the epochs and within the noisier one) and ``se`` that median's
+    standard error (1.2533 robust sigma / sqrt(n)). Pairing the patches takes out what the
+    surfaces themselves vary by (a chamber's patches spread wider than the plain walls' in both
+    figures alike); what is left within two standard errors is the sigmas' sampling noise, not
+    misfit (the plain difference of the two medians read 6.8 mm on the demo, registered to
+    1 mm). NaN when fewer than 10 patches pair up (the plain excess then stands in)."""
+    if cross is None or own is None:
+        return np.nan
+    a = cross.key[cross.full]
+    b = own.key[own.full]
+    if len(a) < 10 or len(b) < 10:
+        return np.nan
+    both = np.concatenate([a, b])
+    _, inv, counts = np.unique(both, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    ia = np.flatnonzero(counts[inv[: len(a)]] == 2)
+    if len(ia) < 10:
+        return np.nan
+    # the matching patch of ``own`` for each paired patch of ``cross``
+    slot = np.full(len(counts), -1, dtype=np.int64)
+    slot[inv[len(a):]] = np.arange(len(b))
+    ib = slot[inv[ia]]
+    d = cross.spread[cross.full][ia] ** 2 - own.spread[own.full][ib] ** 2
+    d = d[np.isfinite(d)]
+    if len(d) < 10:
+        return np.nan
+    mid = float(np.median(d))
+    se = 1.2533 * 1.4826 * float(np.median(np.abs(d - mid))) / float(np.sqrt(len(d)))
+    return float(np.sqrt(max(mid - _EXCESS_Z * se, 0.0)))
 
 
 def _beyond(check: Any) -> float:
