@@ -255,9 +255,10 @@ class _SlidingNearest:
         for attempt in range(2):
             step = delta - self.delta0
             d2 = self.a + step * (self.b + step)
-            best = np.argmin(d2, axis=1)
+            order = np.argpartition(d2, 1, axis=1)[:, :2]  # the nearest two, in order
+            best = order[:, 0]
             rows = np.arange(len(best))
-            two = np.sqrt(np.maximum(np.partition(d2, 1, axis=1)[:, :2], 0.0))
+            two = np.sqrt(np.maximum(np.take_along_axis(d2, order, axis=1), 0.0))
             dmin, second = two[:, 0], two[:, 1]
             free = self.dk - abs(step)  # no point outside the set is nearer than this
             # the tree's own rounding decides near-ties and points near the bound
