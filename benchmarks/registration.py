@@ -113,6 +113,11 @@ def run(case: str, ref, cmp, truth, sag, shell, methods, config) -> list[dict]:
         if method == "centerline-norefine":
             cfg = config.replace(registration={"refine": False})
             method = "centerline"
+        elif method == "centerline-forcerefine":
+            cfg = config.replace(
+                registration={"refine_min_angle_deg": 0.0, "refine_min_shift": 0.0}
+            )
+            method = "centerline"
         t0 = time.perf_counter()
         try:
             if method == "centerline" and cls is not None:
@@ -177,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     methods = args.methods.split(",")
     for m in methods:
-        if m not in METHODS and m != "centerline-norefine":
+        if m not in METHODS and m not in ("centerline-norefine", "centerline-forcerefine"):
             ap.error(f"unknown method {m}")
     config = Config()
     cases = ["straight"] if args.quick else ["straight", "curved", "arched"]

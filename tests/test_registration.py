@@ -424,6 +424,14 @@ def test_refinement_repairs_a_bad_centreline_and_stays_off_otherwise():
     fixed = register(pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=bad)
     assert _errors(off, pair)[1] > 0.3
     assert fixed.info["refine"]["applied"] is True
+    # the cell-offset rule keeps it too, and the shell's offsets at least halve with it
+    by_offset = register(
+        pair.ref.xyz, pair.cmp.xyz, ref_centerline=ref_cl, cmp_centerline=bad,
+        settings=RegistrationConfig(refine_keep="offset"),
+    )
+    r = by_offset.info["refine"]
+    assert r["applied"] is True and r["offset_after_m"] < 0.5 * r["offset_before_m"], r
+    assert _errors(by_offset, pair)[0] <= 0.01
     rms, rot_err = _errors(fixed, pair)
     assert rms <= 0.01 and rot_err <= 0.05, (rms, rot_err)
 

@@ -178,6 +178,16 @@ class RegistrationConfig:
     refine_min_shift: float = _p(
         0.005, "ours: smaller RMS refinement moves are noise and are not applied, m"
     )
+    refine_keep: str = _p(
+        "thresholds",
+        "ours: how a refinement is judged. 'thresholds' keeps it beyond refine_min_angle_deg / "
+        "refine_min_shift; 'offset' keeps it when the stable shell's trimmed RMS of per-cell "
+        "median point-to-plane offsets falls with it (docs/accuracy.md: 0.6-1.7 mm instead of "
+        "0.9-5.1 mm on 12 surveyor's pairs at 400 points/m^2, but one sweep pair at 55 "
+        "points/m^2 and 25 mm noise registered 14 mm off and the demo's shell beyond its LoD95 "
+        "rose to 7.4 %: not yet the default)",
+        ("thresholds", "offset"),
+    )
     voxel: float = _p(0.05, "ours: voxel size for refinement and baselines, m")
     coarse_vertical: str = _p("world", "ours: 'world' keeps z up in the coarse PCA (levelled "
                               "SLAM scans; 2 direction candidates), 'pca' = paper §3.2.1 (4)",

@@ -19,7 +19,7 @@ from ..curve import Centerline
 from ..spatial import query_workers
 from ..transforms import apply_transform
 
-__all__ = ["refine_stable"]
+__all__ = ["refine_stable", "shell_offset"]
 
 
 def refine_stable(
@@ -71,6 +71,82 @@ def refine_stable(
         )
         total = np.asarray(res.transformation) @ total
     return total
+
+
+def shell_offset(
+    ref_xyz: np.ndarray,
+    ref_normals: np.ndarray,
+    ref_tree: cKDTree,
+    ref_cl: Centerline,
+    positions: list[np.ndarray],
+    *,
+    cell_length: float = 1.0,
+    sectors: int = 16,
+    trim: float = 0.2,
+    reach: float = 0.1,
+    min_points: int = 20,
+) -> list[float]:
+    """How far the compared shell sits off the reference, cell by cell, for several positions
+    of the same compared points.
+
+    The compared points on the stable shell (as in :func:`refine_stable`, judged at the first
+    position) are binned into cells of ``cell_length`` along the reference centreline and
+    ``sectors`` angular sectors of the section; in each cell the median signed point-to-plane
+    distance to the nearest reference point (normals turned outward) is the cell's offset.
+    The score of a position is the RMS offset over the cells, leaving out the ``trim`` share
+    of cells with the largest ones (where the tunnel deformed): squares, so that the noise of
+    the cell medians adds the same to every position and the difference between two scores
+    is the systematic part. A rigid misalignment
+    shows in most cells (a lateral slide in every wall cell, a tilt in every roof cell); a local
+    change only in its own few, which the trim drops: the medians and the trim make the score
+    a test the robust ICP was not fitted to.
+
+    Parameters
+    ----------
+    ref_xyz, ref_normals : ndarray, shape (M, 3)
+        Reference points and their (unoriented) unit normals; ``ref_tree`` is a KD-tree of
+        ``ref_xyz``.
+    ref_cl : Centerline
+        Reference centreline, same frame.
+    positions : list of ndarray, shape (N, 3)
+        The same compared points (row for row) at each candidate position.
+
+    Returns
+    -------
+    list of float
+        The score of each position, metres (NaN when fewer than 10 cells hold ``min_points``).
+    """
+    first = positions[0]
+    shell = _shell_mask(first, ref_cl)
+    p = ref_cl.project(first[shell])
+    _, lat, ver = ref_cl.frame_at(p.chainage)
+    radial = p.lateral[:, None] * lat + p.vertical[:, None] * ver
+    ang = np.arctan2(p.vertical, p.lateral)
+    cell = np.floor(p.chainage / cell_length).astype(np.int64) * sectors + (
+        np.floor((ang + np.pi) / (2 * np.pi) * sectors).astype(np.int64) % sectors
+    )
+    scores = []
+    for pos in positions:
+        pts = pos[shell]
+        d, j = ref_tree.query(pts, workers=query_workers(len(pts)))
+        n = ref_normals[j]
+        signed = np.einsum("ij,ij->i", pts - ref_xyz[j], n)
+        signed *= np.sign(np.einsum("ij,ij->i", n, radial))
+        ok = d <= reach
+        key, val = cell[ok], signed[ok]
+        order = np.lexsort((val, key))
+        key, val = key[order], val[order]
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        ends = np.r_[starts[1:], len(key)]
+        full = ends - starts >= min_points
+        if full.sum() < 10:
+            scores.append(float("nan"))
+            continue
+        lo, hi = starts[full], ends[full]
+        med = 0.5 * (val[(lo + hi - 1) // 2] + val[(lo + hi) // 2])
+        off = np.sort(med * med)
+        scores.append(float(np.sqrt(off[: max(1, int(round((1.0 - trim) * len(off))))].mean())))
+    return scores
 
 
 def _shell_mask(xyz: np.ndarray, cl: Centerline, tol: float = 0.1) -> np.ndarray:

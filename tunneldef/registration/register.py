@@ -37,7 +37,7 @@ from .metrics import (
     rotation_error_deg,
     slice_fitness,
 )
-from .refine import refine_stable
+from .refine import refine_stable, shell_offset
 from .result import Registration
 from .views import align_views, axial_correction, normals
 
@@ -333,8 +333,10 @@ def _refine_on_shell(
     timings: dict[str, float],
     f_ref_inv: np.ndarray,
 ) -> np.ndarray:
-    """Robust point-to-plane refinement on the stable shell, applied only when it corrects
-    more than the noise; returns the (possibly) updated local transform."""
+    """Robust point-to-plane refinement on the stable shell, kept only when it corrects more
+    than the noise (``refine_keep``: by thresholds, or by :func:`shell_offset`); returns the
+    (possibly) updated local transform. The shell offsets before and after are reported
+    either way."""
     ref_cl, rc = ctx.ref_cl, ctx.rc
     assert ref_cl is not None and ctx.ref_n is not None
     t0 = time.perf_counter()
@@ -347,16 +349,27 @@ def _refine_on_shell(
         if shift.informative:
             corr = ax @ corr
             info["refine_axial_uncertainty"] = shift.uncertainty
-    # a correction within the noise would only move the epoch towards its deformed parts:
-    # apply it only when the centreline stages were measurably off
     angle = rotation_error_deg(corr, np.eye(4))
     # (the slide along the axis is left out: on a featureless stretch it is noise)
     delta = apply_transform(corr, cmp_l) - cmp_l
     tan = ref_cl.frame_at(ref_cl.project(cmp_l).chainage)[0]
     delta -= np.einsum("ij,ij->i", delta, tan)[:, None] * tan
     move = float(np.sqrt(np.mean(np.einsum("ij,ij->i", delta, delta))))
-    applied = angle > rc.refine_min_angle_deg or move > rc.refine_min_shift
-    info["refine"] = {"angle_deg": angle, "shift_m": move, "applied": bool(applied)}
+    sub = cmp_l[:: max(1, len(cmp_l) // 100_000)]
+    before, after = shell_offset(
+        ctx.ref_l, ctx.ref_n, ctx.ref_tree, ref_cl, [sub, apply_transform(corr, sub)]
+    )
+    # 'thresholds': a correction within the noise would only move the epoch towards its
+    # deformed parts, so it is kept only when the centreline stages were measurably off;
+    # 'offset': kept when the shell sits closer to the reference with it, cell by cell (the
+    # ICP also pulls towards deformed parts; the trimmed cell medians do not follow), and by
+    # the thresholds where too few cells hold points to tell
+    if rc.refine_keep == "offset" and np.isfinite(before) and np.isfinite(after):
+        applied = after < before
+    else:
+        applied = angle > rc.refine_min_angle_deg or move > rc.refine_min_shift
+    info["refine"] = {"angle_deg": angle, "shift_m": move, "applied": bool(applied),
+                      "offset_before_m": before, "offset_after_m": after}
     if applied:
         local = corr @ local
         if "refine_axial_uncertainty" in info:
