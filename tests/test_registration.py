@@ -458,3 +458,32 @@ def test_open3d_icp_converges_in_survey_coordinates() -> None:
     t = icp_plane(ref, cmp, np.eye(4), voxel=0.1, max_distance=0.5, iterations=60)
     err = np.linalg.norm(apply_transform(t, cmp) - ref, axis=1)
     assert err.max() < 0.002
+
+
+def test_shell_offset_tells_a_few_millimetres_from_the_noise_only_where_the_cells_can():
+    """The paired cell test of the shell refinement: at 400 points/m^2 and 15 mm noise a
+    4 mm lateral slide is told apart beyond 3 standard errors, in both directions; a 0.5 mm
+    one is not. At 55 points/m^2 and 25 mm noise (cell medians of a few tens of points) not
+    even 8 mm is, so the thresholds decide there."""
+    from scipy.spatial import cKDTree
+
+    from tunneldef.registration.refine import shell_offset
+    from tunneldef.registration.views import normals
+
+    def slide_z(density, noise, shift):
+        tunnel = TunnelSpec(length=16.0, density=density, noise_sigma=noise, chamber=False,
+                            equipment=False)
+        pair = make_pair(PairSpec(tunnel=tunnel, deformations=(), yaw_deg=0.0, seed=4))
+        ref, cl = pair.ref.xyz, pair.truth.centerline
+        cmp = pair.truth.cmp_xyz_in_ref
+        lat = cl.frame_at(cl.project(cmp).chainage)[1]
+        args = (ref, normals(ref), cKDTree(ref), cl)
+        off = shell_offset(*args, [cmp + shift * lat, cmp])
+        back = shell_offset(*args, [cmp, cmp + shift * lat])
+        assert off.cells >= 100 and off.scores[0] > off.scores[1] - 1e-3
+        return off.z, back.z
+
+    z, back = slide_z(400.0, 0.015, 0.004)
+    assert z > 3.0 and back < -3.0, (z, back)
+    assert abs(slide_z(400.0, 0.015, 0.0005)[0]) < 3.0
+    assert abs(slide_z(55.0, 0.025, 0.008)[0]) < 3.0

@@ -166,7 +166,7 @@ class RegistrationConfig:
     refine: bool = _p(
         True,
         "ours, measured (benchmarks/registration.py): robust point-to-plane on the stable shell, "
-        "kept only when its correction exceeds refine_min_angle_deg / refine_min_shift. On "
+        "kept only when it measurably helps (refine_keep). On "
         "synth pairs the centreline stages are already at 0.6-2.6 mm and 0.01 deg, and an "
         "applied refinement absorbed 0.7-1.3 mm of a 3 cm sag (centreline stages: < 0.1 mm); "
         "on the real drift the stages alone were 2.5 deg off (noisy centrelines of a 1.9 m "
@@ -179,14 +179,18 @@ class RegistrationConfig:
         0.005, "ours: smaller RMS refinement moves are noise and are not applied, m"
     )
     refine_keep: str = _p(
-        "thresholds",
+        "offset",
         "ours: how a refinement is judged. 'thresholds' keeps it beyond refine_min_angle_deg / "
-        "refine_min_shift; 'offset' keeps it when the stable shell's trimmed RMS of per-cell "
-        "median point-to-plane offsets falls with it (docs/accuracy.md: 0.6-1.7 mm instead of "
-        "0.9-5.1 mm on 12 surveyor's pairs at 400 points/m^2, but one sweep pair at 55 "
-        "points/m^2 and 25 mm noise registered 14 mm off and the demo's shell beyond its LoD95 "
-        "rose to 7.4 %: not yet the default)",
+        "refine_min_shift; 'offset' keeps it when the stable shell's per-cell median "
+        "point-to-plane offsets fall with it by more than refine_offset_z standard errors, "
+        "refuses it when they rise by as much, and uses the thresholds in between "
+        "(docs/accuracy.md: at 400 points/m^2 a 4.4 mm correction the thresholds dropped is "
+        "kept, and the registration's point error falls from 4.5-5.1 to 1.0-1.4 mm)",
         ("thresholds", "offset"),
+    )
+    refine_offset_z: float = _p(
+        3.0, "ours: how many standard errors of the cell medians' noise the 'offset' rule "
+        "asks of a fall (or rise) of the shell's cell offsets before it decides"
     )
     voxel: float = _p(0.05, "ours: voxel size for refinement and baselines, m")
     coarse_vertical: str = _p("world", "ours: 'world' keeps z up in the coarse PCA (levelled "

@@ -11,6 +11,8 @@ are left out, and a Tukey kernel ignores what remains of them.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
@@ -19,7 +21,7 @@ from ..curve import Centerline
 from ..spatial import query_workers
 from ..transforms import apply_transform
 
-__all__ = ["refine_stable", "shell_offset"]
+__all__ = ["OffsetTest", "refine_stable", "shell_offset"]
 
 
 def refine_stable(
@@ -85,21 +87,27 @@ def shell_offset(
     trim: float = 0.2,
     reach: float = 0.1,
     min_points: int = 20,
-) -> list[float]:
+) -> OffsetTest:
     """How far the compared shell sits off the reference, cell by cell, for several positions
-    of the same compared points.
+    of the same compared points, and whether the last position sits closer than the first
+    beyond the noise.
 
     The compared points on the stable shell (as in :func:`refine_stable`, judged at the first
     position) are binned into cells of ``cell_length`` along the reference centreline and
     ``sectors`` angular sectors of the section; in each cell the median signed point-to-plane
     distance to the nearest reference point (normals turned outward) is the cell's offset.
     The score of a position is the RMS offset over the cells, leaving out the ``trim`` share
-    of cells with the largest ones (where the tunnel deformed): squares, so that the noise of
-    the cell medians adds the same to every position and the difference between two scores
-    is the systematic part. A rigid misalignment
-    shows in most cells (a lateral slide in every wall cell, a tilt in every roof cell); a local
-    change only in its own few, which the trim drops: the medians and the trim make the score
-    a test the robust ICP was not fitted to.
+    of cells with the largest ones (where the tunnel deformed). A rigid misalignment shows in
+    most cells (a lateral slide in every wall cell, a tilt in every roof cell); a local change
+    only in its own few, which the trim drops: the medians and the trim make the score a test
+    the robust ICP was not fitted to.
+
+    The first and last positions are also compared cell by cell (paired, on the cells that
+    hold ``min_points`` at both and are outside the trimmed share at either): the fall of the
+    squared offset per cell, its mean over its standard error is ``z``. The cells hold
+    different points, so their medians' noise is independent; a fall of the score that is
+    within it (sparse or noisy shells: cell medians of a few tens of points) gives a small
+    ``z`` whatever the two scores say.
 
     Parameters
     ----------
@@ -113,8 +121,9 @@ def shell_offset(
 
     Returns
     -------
-    list of float
-        The score of each position, metres (NaN when fewer than 10 cells hold ``min_points``).
+    OffsetTest
+        ``scores`` (metres, one per position; NaN when fewer than 10 cells hold
+        ``min_points``), ``z`` (NaN when fewer than 10 cells are shared) and ``cells``.
     """
     first = positions[0]
     shell = _shell_mask(first, ref_cl)
@@ -125,8 +134,10 @@ def shell_offset(
     cell = np.floor(p.chainage / cell_length).astype(np.int64) * sectors + (
         np.floor((ang + np.pi) / (2 * np.pi) * sectors).astype(np.int64) % sectors
     )
-    scores = []
-    for pos in positions:
+    _, cell = np.unique(cell, return_inverse=True)
+    n_cells = int(cell.max()) + 1 if len(cell) else 0
+    meds = np.full((len(positions), n_cells), np.nan)
+    for row, pos in enumerate(positions):
         pts = pos[shell]
         d, j = ref_tree.query(pts, workers=query_workers(len(pts)))
         n = ref_normals[j]
@@ -139,14 +150,38 @@ def shell_offset(
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
         ends = np.r_[starts[1:], len(key)]
         full = ends - starts >= min_points
-        if full.sum() < 10:
+        lo, hi = starts[full], ends[full]
+        meds[row, key[lo]] = 0.5 * (val[(lo + hi - 1) // 2] + val[(lo + hi) // 2])
+    scores = []
+    for med in meds:
+        off = np.sort(med[np.isfinite(med)] ** 2)
+        if len(off) < 10:
             scores.append(float("nan"))
             continue
-        lo, hi = starts[full], ends[full]
-        med = 0.5 * (val[(lo + hi - 1) // 2] + val[(lo + hi) // 2])
-        off = np.sort(med * med)
         scores.append(float(np.sqrt(off[: max(1, int(round((1.0 - trim) * len(off))))].mean())))
-    return scores
+    z, used = float("nan"), 0
+    if len(positions) >= 2:
+        b2, a2 = meds[0] ** 2, meds[-1] ** 2
+        both = np.isfinite(b2) & np.isfinite(a2)
+        worst = np.minimum(b2, a2)[both]
+        keep = worst <= np.quantile(worst, 1.0 - trim) if both.any() else worst.astype(bool)
+        fall = (b2[both] - a2[both])[keep]
+        used = len(fall)
+        if used >= 10:
+            se = fall.std(ddof=1) / np.sqrt(used)
+            z = float(fall.mean() / se) if se > 0 else float("inf") * np.sign(fall.mean())
+    return OffsetTest(scores=scores, z=z, cells=used)
+
+
+@dataclass(frozen=True)
+class OffsetTest:
+    """Result of :func:`shell_offset`: trimmed RMS cell offset per position (m), and the
+    paired test of the last position against the first (``z``: mean fall of the squared cell
+    offsets over its standard error; positive = closer) on ``cells`` shared cells."""
+
+    scores: list[float]
+    z: float
+    cells: int
 
 
 def _shell_mask(xyz: np.ndarray, cl: Centerline, tol: float = 0.1) -> np.ndarray:

@@ -356,20 +356,25 @@ def _refine_on_shell(
     delta -= np.einsum("ij,ij->i", delta, tan)[:, None] * tan
     move = float(np.sqrt(np.mean(np.einsum("ij,ij->i", delta, delta))))
     sub = cmp_l[:: max(1, len(cmp_l) // 100_000)]
-    before, after = shell_offset(
+    test = shell_offset(
         ctx.ref_l, ctx.ref_n, ctx.ref_tree, ref_cl, [sub, apply_transform(corr, sub)]
     )
+    before, after = test.scores
     # 'thresholds': a correction within the noise would only move the epoch towards its
     # deformed parts, so it is kept only when the centreline stages were measurably off;
-    # 'offset': kept when the shell sits closer to the reference with it, cell by cell (the
-    # ICP also pulls towards deformed parts; the trimmed cell medians do not follow), and by
-    # the thresholds where too few cells hold points to tell
-    if rc.refine_keep == "offset" and np.isfinite(before) and np.isfinite(after):
-        applied = after < before
+    # 'offset': kept when the shell sits closer to the reference with it, cell by cell, beyond
+    # the cell medians' noise (the ICP also pulls towards deformed parts; the trimmed cell
+    # medians do not follow), refused when it sits farther beyond that noise, and judged by
+    # the thresholds where the cells cannot tell (sparse or noisy shells, too few cells)
+    by_thresholds = angle > rc.refine_min_angle_deg or move > rc.refine_min_shift
+    z = test.z
+    if rc.refine_keep == "offset" and np.isfinite(z) and abs(z) >= rc.refine_offset_z:
+        applied, rule = bool(z > 0), "offset"
     else:
-        applied = angle > rc.refine_min_angle_deg or move > rc.refine_min_shift
+        applied, rule = by_thresholds, "thresholds"
     info["refine"] = {"angle_deg": angle, "shift_m": move, "applied": bool(applied),
-                      "offset_before_m": before, "offset_after_m": after}
+                      "offset_before_m": before, "offset_after_m": after,
+                      "offset_z": z, "offset_cells": test.cells, "rule": rule}
     if applied:
         local = corr @ local
         if "refine_axial_uncertainty" in info:
