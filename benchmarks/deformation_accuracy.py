@@ -698,18 +698,20 @@ def survey_block(seeds, cache, *, sections, densities, noises, cc=False, cached_
                     mean = {k: float(np.mean([g[0][k] for g in got])) for k in got[0][0]}
                     print(survey_row(name, method, mean, float(np.mean([g[1] for g in got]))))
                     if method == "robust":
-                        verdicts.append((name, [g[0] for g in got]))
+                        verdicts.append((name, [g[0] for g in got], used))
     print("robust, worst seed against the targets (FA <= 0.5 %; peaks within 10 % at >= 400/m2):")
-    for name, got in verdicts:
-        fa = max(g["fa"] for g in got)
-        peak = max(
-            abs(g[f"read{i}"] - g[f"true{i}"]) / abs(g[f"true{i}"])
+    for name, got, used in verdicts:
+        fas = [g["fa"] for g in got]
+        peaks = [
+            max(abs(g[f"read{i}"] - g[f"true{i}"]) / abs(g[f"true{i}"])
+                for i in range(len(SURVEY_CHANGES)))
             for g in got
-            for i in range(len(SURVEY_CHANGES))
-        )
+        ]
+        fa, peak = max(fas), max(peaks)
         print(
-            f"  {name:<34} FA {fa:5.2f} % ({_yes(fa <= SURVEY_TARGETS['fa'])}), worst peak "
-            f"error {100 * peak:4.1f} % ({_yes(peak <= SURVEY_TARGETS['peak'])})"
+            f"  {name:<34} FA {fa:5.2f} % (s{used[int(np.argmax(fas))]}, "
+            f"{_yes(fa <= SURVEY_TARGETS['fa'])}), worst peak error {100 * peak:4.1f} % "
+            f"(s{used[int(np.argmax(peaks))]}, {_yes(peak <= SURVEY_TARGETS['peak'])})"
         )
 
 
