@@ -343,7 +343,9 @@ def test_fit_excess_beyond_noise_keeps_a_real_misfit_and_drops_sampling_noise(
 def test_level_of_detection_on_the_demo_flags_the_changes_and_not_the_shell() -> None:
     """On the quick demo with its own registration: the unchanged shell beyond its LoD95 stays
     under the nominal 5 % and most points that truly moved more than 10 mm are flagged (with
-    the plain fit excess, sampling noise of 6.8 mm, in the LoD: 0.01 % and 43 %)."""
+    the plain fit excess, sampling noise of 6.8 mm, in the LoD: 0.01 % and 43 %; registered
+    to 0.77 mm with no floor under the registration's part, which the check then reads as 0:
+    7.4 % beyond)."""
     from tunneldef.demo import demo_spec
     from tunneldef.pipeline import detect
 

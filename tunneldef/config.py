@@ -189,8 +189,10 @@ class RegistrationConfig:
         ("thresholds", "offset"),
     )
     refine_offset_z: float = _p(
-        3.0, "ours: how many standard errors of the cell medians' noise the 'offset' rule "
-        "asks of a fall (or rise) of the shell's cell offsets before it decides"
+        2.0, "ours: how many standard errors of the cell medians' noise the 'offset' rule "
+        "asks of a fall (or rise) of the shell's cell offsets before it decides (two-sided "
+        "95 %; docs/accuracy.md: at 3, two refinements at z 2.8 that took the registration "
+        "from 2.2 to 0.8 and from 5.9 to 2.6 mm were left to the thresholds, which dropped them)"
     )
     voxel: float = _p(0.05, "ours: voxel size for refinement and baselines, m")
     coarse_vertical: str = _p("world", "ours: 'world' keeps z up in the coarse PCA (levelled "
@@ -243,6 +245,12 @@ class DeformationConfig:
                     "400 pts/m2 noise floor 2.0 -> 1.7 mm; a clear change (beyond 3 LoD95) is "
                     "read on its own cylinder, smoothing bias taken out, so peaks keep their size; "
                     "false keeps the plain cylinders (benchmarks/deformation_accuracy.py)")
+    registration_sigma_floor: float = _p(
+        0.0005, "ours, measured (robust): the least registration error the level of detection "
+        "assumes, m. The registration check cannot see errors below its resolution and then "
+        "reports 0; the best registrations on synthetic pairs with a truth still leave "
+        "0.3-0.8 mm (docs/accuracy.md). With 0, the quick demo registered to 0.77 mm had 7.4 % "
+        "of its unchanged shell beyond its LoD95 (nominal 5 %); with 0.5 mm, 3.0 %")
 
 
 @dataclass(frozen=True)

@@ -272,7 +272,7 @@ def compute_deformation(
         ``centerline.project(cmp_xyz)`` when the caller already has it.
     registration_sigma : float
         ``robust`` only: standard uncertainty of the registration, metres, added to the level
-        of detection.
+        of detection (never less than ``settings.registration_sigma_floor``).
     workers : int
         Threads for KD-tree queries (-1: all cores).
     progress : callable, optional
@@ -332,6 +332,7 @@ def compute_deformation(
     cmp = check_points(cmp_xyz, name="compared cloud")
     ref = check_points(ref_xyz, name="reference cloud")
     k = dcfg.k
+    registration_sigma = max(float(registration_sigma), dcfg.registration_sigma_floor)
     if shell is not None and np.shape(shell) != (cmp.shape[0],):
         raise InvalidCloudError(
             f"shell mask has shape {np.shape(shell)}, expected ({cmp.shape[0]},)"
