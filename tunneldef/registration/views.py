@@ -172,17 +172,27 @@ def _ransac_plane(
         raise RegistrationError("the floor points are collinear; no floor plane can be fitted")
     n = n[ok] / norm[ok, None]
     d = -np.einsum("ij,ij->i", n, tri[ok, 0])
-    best, best_count = 0, -1
-    for start in range(0, len(n), 100):  # 100 planes x N points at a time
-        counts = (np.abs(q @ n[start : start + 100].T + d[start : start + 100]) <= distance).sum(
-            axis=0
-        )
-        k = int(np.argmax(counts))
-        if counts[k] > best_count:
-            best, best_count = start + k, int(counts[k])
+    # preemptive scoring: every plane on a random subset, the best few on all points (the
+    # count on all 60 000 points of each of 1000 planes was 10 % of a 60 m registration)
+    if len(q) > 4 * _RANSAC_PRESCORE:
+        sub = q[rng.choice(len(q), _RANSAC_PRESCORE, replace=False)]
+        pre = _inlier_counts(sub, n, d, distance)
+        top = np.sort(np.argsort(-pre, kind="stable")[:_RANSAC_KEEP])
+        n, d = n[top], d[top]
+    counts = _inlier_counts(q, n, d, distance)
+    best = int(np.argmax(counts))
     normal = n[best]
     idx = np.flatnonzero(np.abs(q @ normal + d[best]) <= distance)
     return normal, float(d[best] - normal @ c), idx
+
+
+def _inlier_counts(q: np.ndarray, n: np.ndarray, d: np.ndarray, distance: float) -> np.ndarray:
+    """Points of ``q`` within ``distance`` of each plane ``n . x + d = 0`` (100 at a time)."""
+    counts = np.empty(len(n), dtype=np.int64)
+    for start in range(0, len(n), 100):
+        block = np.abs(q @ n[start : start + 100].T + d[start : start + 100]) <= distance
+        counts[start : start + 100] = block.sum(axis=0)
+    return counts
 
 
 def _line_xz(
@@ -467,6 +477,8 @@ def _feature_window_shift(
         search=search,
     )
 _AXIAL_MAX_POINTS = 60_000
+_RANSAC_PRESCORE = 4_000  # floor points every RANSAC plane is first counted on
+_RANSAC_KEEP = 20  # planes then counted on all the floor points
 
 
 def _axial_sample(
