@@ -103,8 +103,10 @@ def shell_offset(
     the robust ICP was not fitted to.
 
     The first and last positions are also compared cell by cell (paired, on the cells that
-    hold ``min_points`` at both and are outside the trimmed share at either): the fall of the
-    squared offset per cell, its mean over its standard error is ``z``. The cells hold
+    hold ``min_points`` at both, leaving out the ``trim`` share whose offsets are largest at
+    both: ranked by the smaller of their two squares, so that a slide that shows only in a
+    few wall cells is not trimmed away): the fall of the squared offset per cell, its mean
+    over its standard error is ``z``. The cells hold
     different points, so their medians' noise is independent; a fall of the score that is
     within it (sparse or noisy shells: cell medians of a few tens of points) gives a small
     ``z`` whatever the two scores say.
