@@ -115,7 +115,8 @@ def run(case: str, ref, cmp, truth, sag, shell, methods, config) -> list[dict]:
             method = "centerline"
         elif method == "centerline-forcerefine":
             cfg = config.replace(
-                registration={"refine_min_angle_deg": 0.0, "refine_min_shift": 0.0}
+                registration={"refine_keep": "thresholds", "refine_min_angle_deg": 0.0,
+                              "refine_min_shift": 0.0}
             )
             method = "centerline"
         t0 = time.perf_counter()
