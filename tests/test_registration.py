@@ -463,8 +463,8 @@ def test_open3d_icp_converges_in_survey_coordinates() -> None:
 def test_shell_offset_tells_a_few_millimetres_from_the_noise_only_where_the_cells_can():
     """The paired cell test of the shell refinement: at 400 points/m^2 and 15 mm noise a
     4 mm lateral slide is told apart beyond the decision's standard errors (z 6.3), in both
-    directions; a 0.5 mm one is not (z 1.7). At 55 points/m^2 and 25 mm noise (cell medians of a few tens of points) not
-    even 8 mm is, so the thresholds decide there."""
+    directions; a 0.5 mm one is not (z 1.7). At 55 points/m^2 and 25 mm noise (cell medians
+    of a few tens of points) not even 8 mm is, so the thresholds decide there."""
     from scipy.spatial import cKDTree
 
     from tunneldef.registration.refine import shell_offset
