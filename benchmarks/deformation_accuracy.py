@@ -438,7 +438,11 @@ def drift_block(methods, n_points, seed, amp=0.015, *, registered=False, seeds=N
     print(HEADER + f" {'core t/r':>11}")
     worst = {}
     for sd in seeds:
-        got = drift_halves(n_points, sd, amp, registered=registered)
+        try:
+            got = drift_halves(n_points, sd, amp, registered=registered)
+        except TunnelDefError as exc:  # a refusal is a result, not a crash
+            print(f"drift halves seed {sd}: refused: {exc}"[:200])
+            continue
         if got is None:
             print(f"(real drift block skipped: {DRIFT} not found)")
             return
