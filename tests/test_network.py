@@ -359,3 +359,53 @@ def test_cli_centerline_network_writes_the_graph(pair, tmp_path) -> None:  # noq
                  str(tmp_path / "net.ply")]) == 0
     curve = read(tmp_path / "net.ply")
     assert set(np.unique(curve.fields["edge"])) == {0, 1, 2}
+
+
+def test_a_corner_is_flagged_like_a_junction_and_a_bend_is_not() -> None:
+    from tunneldef.centerline.network import _corners
+    from tunneldef.curve import Centerline
+
+    leg = np.linspace(0.0, 20.0, 201)
+    ell = np.vstack([np.column_stack([leg, 0 * leg, 0 * leg]),
+                     np.column_stack([20.0 + 0 * leg[1:], leg[1:], 0 * leg[1:]])])
+    got = _corners(Centerline.from_polyline(ell, step=0.1), 2.0, 0.5)
+    assert len(got) == 1
+    xyz, half = got[0]
+    assert np.linalg.norm(xyz[:2] - [20.0, 0.0]) < 1.0
+    assert half == pytest.approx(2.0 + 0.5, abs=0.3)  # hw / sin 90 + margin
+    # a 12 m radius bend (a ramp's) and a straight drift turn no corner
+    a = np.linspace(0.0, np.pi / 2, 200)
+    bend = np.column_stack([12.0 * np.sin(a), 12.0 * (1 - np.cos(a)), 0 * a])
+    bend = np.vstack([np.column_stack([leg - 20.0, 0 * leg, 0 * leg])[:-1], bend])
+    assert _corners(Centerline.from_polyline(bend, step=0.1), 2.5, 0.5) == []
+    assert _corners(Centerline.from_polyline(ell[:201], step=0.1), 2.0, 0.5) == []
+
+
+def test_a_walk_round_a_corner_keeps_its_curve_on_both_drifts() -> None:
+    """The walker goes down the main drift, a few metres past a cross-cut (a stub the skeleton
+    prunes) and into the cross-cut: one edge that turns a right-angle corner. The slices there
+    are no sections: they are flagged, and the curve outside the zone follows both drifts."""
+    from tunneldef.synth.network import NetworkPairSpec, Stretch
+
+    edges = (
+        EdgeSpec("main", ((0.0, 0.0, 0.0), (40.0, 0.0, 0.0)), SectionSpec("rectangle", 4.5, 3.0)),
+        EdgeSpec("xc", ((30.0, 0.0, 0.0), (30.0, -20.0, 0.0)), SectionSpec("arch", 4.0, 3.0)),
+    )
+    net = NetworkSpec(edges, (JunctionSpec("j", (30.0, 0.0, 0.0), (0, 1)),))
+    cover = (Stretch(0, 0.0, 33.0), Stretch(1, 0.0, 20.0))
+    spec = NetworkPairSpec(net, ref_coverage=cover, cmp_coverage=cover, density=150.0,
+                           noise_sigma=0.01, drift=0.0, seed=3)
+    pair = make_network_pair(spec)
+    res = extract_network(pair.ref.xyz)
+    assert len(res.network.edges) == 1
+    edge = res.network.edges[0]
+    plan = np.linalg.norm(edge.centerline.points[:, :2] - [30.0, 0.0], axis=1)
+    corner_s = float(edge.centerline.chainage[np.argmin(plan)])
+    assert any(a <= corner_s <= b for a, b in edge.zones)
+    # on both legs away from the corner the curve follows its drift (the stiff NURBS that
+    # bridges the zone swings up to about 0.2 m off for some 6 m past a right angle)
+    s = np.arange(2.0, edge.centerline.length - 2.0, 0.5)
+    s = s[np.abs(s - corner_s) > 9.0]
+    q = edge.centerline.point_at(s)
+    d = np.min([ax.project(q).distance for ax in pair.truth.centerlines], axis=0)
+    assert np.percentile(d, 95) < 0.01

@@ -121,6 +121,60 @@ class _Edge:
     curve: Centerline | None = None
     records: list[SliceRecord] | None = None
     zones: list[tuple[float, float]] | None = None
+    corners: list[tuple[np.ndarray, float]] = dataclasses.field(default_factory=list)
+
+
+_CORNER_TURN_DEG = 45.0  # an edge turning more than this within a chord either side is a corner
+
+
+def _corners(axis: Centerline, half_width: float, margin: float) -> list[tuple[np.ndarray, float]]:
+    """Sharp turns of an edge: where the drift turns a corner (a drift walked into a cross-cut
+    whose junction has no third branch left, the main drift ending a few metres beyond it).
+
+    The plan heading over a chord of ``half_width + 2`` m before each station is compared
+    with the one after; where they differ by more than ``_CORNER_TURN_DEG`` (a bend of radius
+    below about 1.3 chords; mine bends of 10 m and more turn some 25 degrees), the section is
+    no tunnel section, as at a junction. Returns per corner its point (on ``axis``) and the
+    half-length of its zone, ``hw / sin(a) + hw |cos(a)| / sin(a) + margin`` as at a junction
+    of the two legs (``a`` the angle between them).
+    """
+    chord = half_width + 2.0
+    if axis.length < 2.5 * chord:
+        return []
+    s = np.arange(chord, axis.length - chord, 0.25)
+    if s.size < 3:
+        return []
+    p0, p1, p2 = (axis.point_at(s + d)[:, :2] for d in (-chord, 0.0, chord))
+    u, w = p1 - p0, p2 - p1
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-12)
+    turn = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, w), -1.0, 1.0)))
+    sharp = turn > _CORNER_TURN_DEG
+    out: list[tuple[np.ndarray, float]] = []
+    labels, n = ndimage.label(sharp)
+    for lab in range(1, n + 1):
+        i = np.flatnonzero(labels == lab)
+        j = int(i[np.argmax(turn[i])])
+        a = np.radians(180.0 - turn[j])  # the angle between the two legs at the corner
+        sin = max(abs(np.sin(a)), np.sin(np.radians(20.0)))
+        half = half_width / sin + half_width * abs(np.cos(a)) / sin + margin
+        out.append((axis.point_at(s[j])[0], float(half)))
+    return out
+
+
+def _corner_points(e: _Edge) -> list[np.ndarray]:
+    return [xyz for xyz, _ in e.corners]
+
+
+def _with_corners(
+    zones: list[tuple[float, float]], curve: Centerline, corners: list[tuple[np.ndarray, float]]
+) -> list[tuple[float, float]]:
+    """``zones`` and the corner zones of an edge on ``curve``."""
+    out = list(zones)
+    for xyz, half in corners:
+        at = float(curve.project(xyz[None]).chainage[0])
+        out.append((at - half, at + half))
+    return out
 
 
 def _axis_from_path(path: np.ndarray, grid: PlanGrid) -> Centerline:
@@ -557,6 +611,7 @@ def extract_network(
         near = cKDTree(axis.points[:, :2]).query(pts[:, :2], distance_upper_bound=tube)[0]
         edges.append(_Edge(e.path, list(e.nodes), list(getattr(e, "through", [])), axis, half,
                            tube, np.flatnonzero(np.isfinite(near))))
+        edges[-1].corners = _corners(axis, half, nc.zone_margin)
     # node positions from the first axes (plan node, height of the first member's axis)
     node_xyz: dict[int, np.ndarray] = {}
     for v, ks in members.items():
@@ -566,6 +621,14 @@ def extract_network(
         node_xyz[v] = np.array([plan[0], plan[1], float(ax.point_at(s.chainage)[0, 2])])
     axes = [e.axis for e in edges]
     zones = _zones(edges, node_xyz, axes, members, nc.zone_margin)
+    for k, e in enumerate(edges):  # a skeleton axis bends into a crossing's forks: no corner
+        reach = e.half_width + 2.0
+        e.corners = [(xyz, h) for xyz, h in e.corners if not any(
+            a - reach <= float(e.axis.project(xyz[None]).chainage[0]) <= b + reach
+            for a, b in zones[k])]
+        for xyz, h in e.corners:
+            logger.info("a skeleton edge turns a corner at %s: sections within %.1f m of it "
+                        "are flagged as a junction zone", np.round(xyz, 1).tolist(), h)
     at = [[v for v, ks in members.items() if k in ks] for k in range(len(edges))]
     names = [f"edge {k} ({e.axis.length:.1f} m from {np.round(e.axis.points[0], 1).tolist()})"
              for k, e in enumerate(edges)]
@@ -577,7 +640,8 @@ def extract_network(
     for k, e in enumerate(edges):
         notify(progress, "network centrelines", 0.1 + 0.3 * k / len(edges))
         try:
-            first.append(_passes(pts[e.index], e, e.axis, zones[k], [node_xyz[v] for v in at[k]],
+            first.append(_passes(pts[e.index], e, e.axis, _with_corners(zones[k], e.axis,
+                                 e.corners), [node_xyz[v] for v in at[k]] + _corner_points(e),
                                  sl, c, names[k], quick=True)[0])
         except (NetworkError, NotATunnelError) as exc:
             _leave_out(failed, k, e, members, names[k], exc)
@@ -589,8 +653,10 @@ def extract_network(
         notify(progress, "network centrelines", 0.4 + 0.5 * k / len(edges))
         if k not in failed:
             try:
-                e.curve, e.records = _passes(pts[e.index], e, first[k], zones[k],
-                                             [node_xyz[v] for v in at[k]], sl, c, names[k])
+                e.curve, e.records = _passes(pts[e.index], e, first[k],
+                                             _with_corners(zones[k], first[k], e.corners),
+                                             [node_xyz[v] for v in at[k]] + _corner_points(e),
+                                             sl, c, names[k])
                 continue
             except (NetworkError, NotATunnelError) as exc:
                 _leave_out(failed, k, e, members, names[k], exc)
@@ -621,7 +687,8 @@ def extract_network(
             s = cv.project(np.array([r.centre for r in ok])).chainage
             for r, si in zip(ok, s, strict=True):
                 r.chainage = float(si)
-        zs = tuple(sorted((max(a, 0.0), min(b, cv.length)) for a, b in zones[k]))
+        zs = tuple(sorted((max(a, 0.0), min(b, cv.length))
+                          for a, b in _with_corners(zones[k], cv, e.corners)))
         cv.meta.update({"edge": k, "half_width_m": e.half_width})
         out_edges.append(NetworkEdge(k, f"edge-{k}", cv, zs,
                                      tuple(jid.get(v, -1) for v in e.nodes), e.records))
