@@ -396,6 +396,14 @@ def test_a_walk_round_a_corner_keeps_its_curve_on_both_drifts() -> None:
     spec = NetworkPairSpec(net, ref_coverage=cover, cmp_coverage=cover, density=150.0,
                            noise_sigma=0.01, drift=0.0, seed=3)
     pair = make_network_pair(spec)
+    # no junction is left, but the corner sends `tunneldef detect` down the network path
+    from tunneldef.centerline.skeleton import plan_topology
+    from tunneldef.pipeline import is_network
+
+    topo = plan_topology(pair.ref.xyz)
+    assert (topo.junctions, topo.corners) == (0, 1)
+    assert "turning 1 corner" in topo.describe()
+    assert is_network([pair.ref])
     res = extract_network(pair.ref.xyz)
     assert len(res.network.edges) == 1
     edge = res.network.edges[0]

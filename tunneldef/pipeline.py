@@ -100,9 +100,11 @@ def epoch_named(name: str | None) -> Iterator[None]:
 
 def is_network(clouds: Any, config: Config | None = None) -> bool:
     """True if any of ``clouds`` is a drift network: the skeleton of its plan footprint has
-    a junction (:func:`~tunneldef.centerline.skeleton.plan_topology`, on at most 2 M points:
-    a few seconds). How ``tunneldef detect`` and the plugin choose between :func:`detect`
-    and :func:`detect_network` unless told."""
+    a junction, or turns a corner (a walk from a drift into a cross-cut: one drift's slices
+    and curve cannot follow a right angle, the network's edges flag it as a junction zone)
+    (:func:`~tunneldef.centerline.skeleton.plan_topology`, on at most 2 M points: a few
+    seconds). How ``tunneldef detect`` and the plugin choose between :func:`detect` and
+    :func:`detect_network` unless told."""
     from .centerline.skeleton import plan_topology
 
     nc = (config or Config()).network
@@ -111,7 +113,7 @@ def is_network(clouds: Any, config: Config | None = None) -> bool:
     for name, cloud in zip(names, clouds, strict=True):
         with epoch_named(name):
             topo = plan_topology(cloud.xyz, nc)
-        if topo.junctions > 0:
+        if topo.junctions > 0 or topo.corners > 0:
             log.info("%s: measuring as a drift network", topo.describe())
             return True
     return False

@@ -54,7 +54,7 @@ from .extract import (
 from .fit import fit_stiffest
 from .plan import PlanGrid
 from .roof_floor import roll_profile
-from .skeleton import SkeletonGraph, plan_graph
+from .skeleton import SkeletonGraph, plan_graph, sharp_turns
 from .slicing import slice_along_axis, thickness_for
 from .walls import estimate_wall_leans
 
@@ -124,41 +124,20 @@ class _Edge:
     corners: list[tuple[np.ndarray, float]] = dataclasses.field(default_factory=list)
 
 
-_CORNER_TURN_DEG = 45.0  # an edge turning more than this within a chord either side is a corner
-
-
 def _corners(axis: Centerline, half_width: float, margin: float) -> list[tuple[np.ndarray, float]]:
-    """Sharp turns of an edge: where the drift turns a corner (a drift walked into a cross-cut
-    whose junction has no third branch left, the main drift ending a few metres beyond it).
-
-    The plan heading over a chord of ``half_width + 2`` m before each station is compared
-    with the one after; where they differ by more than ``_CORNER_TURN_DEG`` (a bend of radius
-    below about 1.3 chords; mine bends of 10 m and more turn some 25 degrees), the section is
-    no tunnel section, as at a junction. Returns per corner its point (on ``axis``) and the
-    half-length of its zone, ``hw / sin(a) + hw |cos(a)| / sin(a) + margin`` as at a junction
-    of the two legs (``a`` the angle between them).
+    """Sharp turns of an edge (:func:`~tunneldef.centerline.skeleton.sharp_turns`): where the
+    walk turns a corner (into a cross-cut whose junction has no third branch left, the main
+    drift ending a few metres beyond it). The sections there are no tunnel sections, as at a
+    junction. Returns per corner its point (on ``axis``) and the half-length of its zone,
+    ``hw / sin(a) + hw |cos(a)| / sin(a) + margin`` as at a junction of the two legs (``a``
+    the angle between them).
     """
-    chord = half_width + 2.0
-    if axis.length < 2.5 * chord:
-        return []
-    s = np.arange(chord, axis.length - chord, 0.25)
-    if s.size < 3:
-        return []
-    p0, p1, p2 = (axis.point_at(s + d)[:, :2] for d in (-chord, 0.0, chord))
-    u, w = p1 - p0, p2 - p1
-    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
-    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-12)
-    turn = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, w), -1.0, 1.0)))
-    sharp = turn > _CORNER_TURN_DEG
     out: list[tuple[np.ndarray, float]] = []
-    labels, n = ndimage.label(sharp)
-    for lab in range(1, n + 1):
-        i = np.flatnonzero(labels == lab)
-        j = int(i[np.argmax(turn[i])])
-        a = np.radians(180.0 - turn[j])  # the angle between the two legs at the corner
+    for s, turn in sharp_turns(axis.points, half_width):
+        a = np.radians(180.0 - turn)
         sin = max(abs(np.sin(a)), np.sin(np.radians(20.0)))
         half = half_width / sin + half_width * abs(np.cos(a)) / sin + margin
-        out.append((axis.point_at(s[j])[0], float(half)))
+        out.append((axis.point_at(s)[0], float(half)))
     return out
 
 

@@ -31,8 +31,55 @@ from .plan import PlanGrid, plan_grid
 
 __all__ = [
     "SkeletonEdge", "SkeletonGraph", "skeleton_graph", "PlanTopology", "plan_graph",
-    "plan_topology",
+    "plan_topology", "sharp_turns", "CORNER_TURN_DEG",
 ]
+
+#: a drift turning more than this (degrees) within a chord of its half-width + 2 m either side
+#: turns a corner: its sections there are no tunnel sections (a bend of radius below about
+#: 1.3 chords; mine bends of 10 m and more turn some 25 degrees over that chord)
+CORNER_TURN_DEG = 45.0
+
+
+def sharp_turns(
+    xy: np.ndarray, half_width: float, *, trim: float = 0.0, step: float = 0.25
+) -> list[tuple[float, float]]:
+    """Corners along a plan polyline: the arclength (m) and turn (degrees) of each stretch
+    where the heading over a chord of ``half_width + 2`` m before a station differs from the
+    one after by more than :data:`CORNER_TURN_DEG` (the sharpest station of each stretch).
+    Stations within a chord plus ``trim`` of either end are not looked at.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (K, 2) or (K, 3)
+        Points in order, metres: the arclength is along them, the headings in plan.
+    half_width : float
+        The drift's half-width, metres.
+    """
+    pts = np.asarray(xy, dtype=np.float64)
+    if len(pts) < 2:
+        return []
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    xy = pts[:, :2]
+    chord = half_width + 2.0
+    s = np.arange(chord + trim, arc[-1] - chord - trim, step)
+    if s.size < 3:
+        return []
+
+    def at(t: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(t, arc, xy[:, 0]), np.interp(t, arc, xy[:, 1])])
+
+    p0, p1, p2 = at(s - chord), at(s), at(s + chord)
+    u, w = p1 - p0, p2 - p1
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-12)
+    turn = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, w), -1.0, 1.0)))
+    out = []
+    sharp = turn > CORNER_TURN_DEG
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], sharp.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        j = a + int(np.argmax(turn[a:b]))
+        out.append((float(s[j]), float(turn[j])))
+    return out
 
 
 @dataclass
@@ -439,11 +486,15 @@ class PlanTopology:
         Nodes where drifts meet (0 for one drift, whatever its bends and niches).
     reason : str
         Why the plan says nothing ("" when it was read).
+    corners : int
+        Sharp turns of the drifts away from junctions (:func:`sharp_turns`): a walk round
+        a corner, e.g. from a drift's end into a cross-cut.
     """
 
     lengths: tuple[float, ...]
     junctions: int
     reason: str = ""
+    corners: int = 0
 
     def describe(self) -> str:
         """E.g. ``"3 drifts (40.2, 24.1, 12.0 m) meeting at 2 junctions"``."""
@@ -451,8 +502,10 @@ class PlanTopology:
             return f"plan not read ({self.reason})"
         ls = ", ".join(f"{v:.1f}" for v in self.lengths)
         n = len(self.lengths)
+        turns = (f", turning {self.corners} corner{'s' if self.corners != 1 else ''}"
+                 if self.corners else "")
         if not self.junctions:
-            return f"{n} drift{'s' if n != 1 else ''} ({ls} m), no junction"
+            return f"{n} drift{'s' if n != 1 else ''} ({ls} m), no junction{turns}"
         return (f"{n} drift{'s' if n != 1 else ''} ({ls} m) meeting at {self.junctions} "
                 f"junction{'s' if self.junctions != 1 else ''}")
 
@@ -484,8 +537,15 @@ def plan_topology(
     if len(pts) > max_points:
         pts = pts[np.random.default_rng(0).random(len(pts)) < max_points / len(pts)]
     try:
-        _, graph = plan_graph(pts, nc)
+        grid, graph = plan_graph(pts, nc)
     except TunnelDefError as exc:
         return PlanTopology((), 0, str(exc).split(";")[0])
     lengths = tuple(sorted((float(e.length) for e in graph.edges), reverse=True))
-    return PlanTopology(lengths, len(graph.junctions))
+    corners = 0
+    if not graph.junctions:  # (a skeleton bends into a crossing's forks: junctions decide)
+        for e in graph.edges:
+            hw = grid.half_width[tuple(np.round(e.path).astype(np.int64).T)]
+            half = float(np.median(hw)) if hw.size else 1.0
+            # a free end's medial axis forks to the face's corners within a half-width
+            corners += len(sharp_turns(grid.to_world(e.path), half, trim=half))
+    return PlanTopology(lengths, len(graph.junctions), corners=corners)
