@@ -404,6 +404,11 @@ def test_a_walk_round_a_corner_keeps_its_curve_on_both_drifts() -> None:
     assert (topo.junctions, topo.corners) == (0, 1)
     assert "turning 1 corner" in topo.describe()
     assert is_network([pair.ref])
+    from tunneldef.config import QualityConfig
+    from tunneldef.quality import topology_checks
+
+    failed = [c.name for c in topology_checks(topo, QualityConfig(), "reference") if not c.passed]
+    assert failed == ["reference_epoch.corners"]  # --single refuses it, naming the corner
     res = extract_network(pair.ref.xyz)
     assert len(res.network.edges) == 1
     edge = res.network.edges[0]

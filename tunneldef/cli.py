@@ -286,7 +286,8 @@ def _add_kind(p: argparse.ArgumentParser, network_help: str, single_help: str) -
 
 
 def _as_network(args: argparse.Namespace, clouds: list[Any], config: Any) -> bool:
-    """``--network``, ``--single``, or else whether the plan of any epoch shows a junction."""
+    """``--network``, ``--single``, or else whether the plan of any epoch shows a junction
+    or a corner."""
     from .pipeline import is_network
 
     if args.network or args.single:
@@ -470,7 +471,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots", metavar="DIR", help="write diagnostic figures into DIR")
     _add_kind(p, "a drift network: write the graph of edges and junctions (JSON: nodes and "
               "edges; CSV: slices with their edge; PLY/LAS/LAZ: curve points with an edge "
-              "field); default: when the plan shows a junction",
+              "field); default: when the plan shows a junction or a corner",
               "one drift, even if the plan shows junctions")
     p.set_defaults(func=cmd_centerline)
 
@@ -510,8 +511,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="registration method (default: centerline)")
     _add_kind(p, "the epochs are drift networks: measure every point against its branch "
               "(adds the uint16 field 'branch'; sections and danger zones per branch); "
-              "default: when either epoch's plan shows a junction",
-              "one drift: refuse epochs whose plan shows junctions")
+              "default: when either epoch's plan shows a junction or a corner",
+              "one drift: refuse epochs whose plan shows junctions or corners")
     p.add_argument("--no-drift-correction", action="store_true",
                    help="for a drift network: no piecewise-rigid SLAM-drift correction")
     p.add_argument("--force", action="store_true",

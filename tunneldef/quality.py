@@ -191,14 +191,20 @@ class QualityReport:
 def topology_checks(topology: Any, qc: QualityConfig, epoch: str) -> list[Check]:
     """Is the epoch one drift? Junctions in its plan skeleton (a
     :class:`~tunneldef.centerline.skeleton.PlanTopology`) mean a drift network, which a
-    single-tube run would measure against one centreline (NaN, passing, when the plan could
-    not be read)."""
+    single-tube run would measure against one centreline; a corner (a walk round a right
+    angle) is measured as a network too, whose edges flag it (NaN, passing, when the plan
+    could not be read)."""
     figure = np.nan if topology.reason else float(topology.junctions)
     return [
         _check(f"{epoch}_epoch.junctions", figure, qc.max_junctions, "<=", "",
                f"the {epoch} epoch is a drift network: {topology.describe()}; run "
                "`tunneldef detect --network`",
                f"junctions of the plan footprint's skeleton: {topology.describe()}"),
+        _check(f"{epoch}_epoch.corners", np.nan if topology.reason else
+               float(getattr(topology, "corners", 0)), 0.0, "<=", "",
+               f"the {epoch} epoch turns a corner: {topology.describe()}; one centreline cannot "
+               "follow a right angle, run `tunneldef detect --network`",
+               f"sharp turns of the plan footprint's skeleton: {topology.describe()}"),
     ]
 
 
