@@ -1,7 +1,7 @@
 """The three jobs, each in two steps: compute (worker thread: the core on numpy arrays, never
 an entity) and apply (main thread: scalar fields, colours, new entities).
 
-An epoch whose plan shows junctions (cross-cuts, crossings: the core's
+An epoch whose plan shows junctions (cross-cuts, crossings) or turns a corner (the core's
 :func:`~tunneldef.centerline.skeleton.plan_topology`) is a drift network: detection and
 extraction then run the core's network stages and draw one polyline per edge."""
 
