@@ -201,7 +201,7 @@ def topology_checks(topology: Any, qc: QualityConfig, epoch: str) -> list[Check]
                "`tunneldef detect --network`",
                f"junctions of the plan footprint's skeleton: {topology.describe()}"),
         _check(f"{epoch}_epoch.corners", np.nan if topology.reason else
-               float(getattr(topology, "corners", 0)), 0.0, "<=", "",
+               float(topology.corners), 0.0, "<=", "",
                f"the {epoch} epoch turns a corner: {topology.describe()}; one centreline cannot "
                "follow a right angle, run `tunneldef detect --network`",
                f"sharp turns of the plan footprint's skeleton: {topology.describe()}"),

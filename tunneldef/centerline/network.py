@@ -54,7 +54,7 @@ from .extract import (
 from .fit import fit_stiffest
 from .plan import PlanGrid
 from .roof_floor import roll_profile
-from .skeleton import SkeletonGraph, plan_graph, sharp_turns
+from .skeleton import SkeletonGraph, path_half_width, plan_graph, sharp_turns
 from .slicing import slice_along_axis, thickness_for
 from .walls import estimate_wall_leans
 
@@ -579,8 +579,7 @@ def extract_network(
     members = {v: sorted(renum[k] for k in ks) for v, ks in graph.junctions.items()}
     edges: list[_Edge] = []
     for e in sk_edges:
-        hw = grid.half_width[tuple(np.round(e.path).astype(np.int64).T)]
-        half = float(np.median(hw)) if hw.size else 1.0
+        half = path_half_width(grid, e.path)
         free = tuple(v not in members for v in e.nodes[:2])
         path, cut = _trim_free_ends(e.path, free, half / grid.cell)
         axis = _axis_from_path(path, grid)

@@ -31,13 +31,20 @@ from .plan import PlanGrid, plan_grid
 
 __all__ = [
     "SkeletonEdge", "SkeletonGraph", "skeleton_graph", "PlanTopology", "plan_graph",
-    "plan_topology", "sharp_turns", "CORNER_TURN_DEG",
+    "plan_topology", "sharp_turns", "path_half_width", "CORNER_TURN_DEG",
 ]
 
 #: a drift turning more than this (degrees) within a chord of its half-width + 2 m either side
 #: turns a corner: its sections there are no tunnel sections (a bend of radius below about
 #: 1.3 chords; mine bends of 10 m and more turn some 25 degrees over that chord)
 CORNER_TURN_DEG = 45.0
+
+
+def path_half_width(grid: PlanGrid, path: np.ndarray) -> float:
+    """Median half-width (m) of the plan footprint along a skeleton path (plan cells); 1 m
+    for an empty path."""
+    hw = grid.half_width[tuple(np.round(path).astype(np.int64).T)]
+    return float(np.median(hw)) if hw.size else 1.0
 
 
 def sharp_turns(
@@ -544,8 +551,7 @@ def plan_topology(
     corners = 0
     if not graph.junctions:  # (a skeleton bends into a crossing's forks: junctions decide)
         for e in graph.edges:
-            hw = grid.half_width[tuple(np.round(e.path).astype(np.int64).T)]
-            half = float(np.median(hw)) if hw.size else 1.0
+            half = path_half_width(grid, e.path)
             # a free end's medial axis forks to the face's corners within a half-width
             corners += len(sharp_turns(grid.to_world(e.path), half, trim=half))
     return PlanTopology(lengths, len(graph.junctions), corners=corners)
