@@ -12,7 +12,10 @@ RSS are those of each whole process (``os.wait4``). Rows:
 
 * ``60``: 60 m, 1.15 M + 1.14 M points, PLY in and out;
 * ``350``: 350 m, 16 M + 16 M points, LAZ in and out;
-* ``1000``: 1 km, 55 M + 55 M points, LAZ in and out.
+* ``1000``: 1 km, 55 M + 55 M points, LAZ in and out. A pair this large does not fit in
+  memory with its truth: it is drawn stretch by stretch
+  (:func:`tunneldef.synth.large.write_large_pair`) and C2C, which needs the aligned copy, is
+  not run on it.
 
 Prints one Markdown table. Other work on the machine slows both programs; the load average
 at the start of each row is printed with it.
@@ -21,6 +24,7 @@ at the start of each row is printed with it.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import subprocess
@@ -37,6 +41,7 @@ ROWS = {  # length m -> (points per epoch without clutter, format)
     1000: (45.4e6, "laz"),
 }
 PERIMETER = 2 * (5.8 + 2.86)
+LARGE = 20e6  # points per epoch beyond which the pair is written stretch by stretch
 
 
 def _run(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float, int, str]:
@@ -65,6 +70,12 @@ def _pair(length: float, points: float, fmt: str, folder: Path) -> tuple[int, in
                                             amplitude=0.03),),
         cmp_shift=1.0, yaw_deg=140.0, seed=11,
     )
+    if points > LARGE:
+        # too large to hold with its truth: drawn stretch by stretch, no aligned copy for C2C
+        from tunneldef.synth.large import write_large_pair
+
+        got = json.loads(write_large_pair(spec, folder, fmt=fmt)["truth"].read_text())["points"]
+        return got["ref"], got["cmp"]
     pair = synth.make_pair(spec)
     write(folder / f"ref.{fmt}", pair.ref)
     write(folder / f"cmp.{fmt}", pair.cmp)
@@ -96,7 +107,7 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         try:
             t = time.perf_counter()
-            if args.reuse and (folder / "c2c_cmp.ply").exists():
+            if args.reuse and (folder / f"cmp.{fmt}").exists():
                 n_ref, n_cmp = (len(read_points(folder / f"{e}.{fmt}")[0]) for e in ("ref", "cmp"))
             else:
                 n_ref, n_cmp = _pair(length, points, fmt, folder)
@@ -110,7 +121,7 @@ def main() -> None:
             if code != 0:
                 print(f"detect failed ({code}): {tail}", file=sys.stderr)
             c_wall = c_rss = float("nan")
-            if cc:
+            if cc and (folder / "c2c_cmp.ply").exists():
                 env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
                 c_wall, c_rss, c_code, c_tail = _run(
                     [cc, "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(folder / "c2c_ref.ply"),

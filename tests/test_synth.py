@@ -420,3 +420,39 @@ def test_shell_drawn_in_stretches_is_one_uniform_sample(monkeypatch):
     offset = tp.outline.signed_distance(pr.lateral[shell], pr.vertical[shell])
     np.testing.assert_allclose(offset, tp.displacement[shell], atol=1e-9)
     assert tp.displacement.min() == pytest.approx(-0.05, abs=1e-3)
+
+
+def test_large_pair_written_stretch_by_stretch_is_the_same_kind_of_pair(tmp_path):
+    from tunneldef.io import read
+    from tunneldef.synth.large import write_large_pair
+    from tunneldef.transforms import apply_transform
+
+    tunnel = TunnelSpec(length=20.0, density=150.0, conveyor=True, **CLEAN)
+    spec = PairSpec(tunnel=tunnel, deformations=(DeformationSpec(chainage=10.0),),
+                    cmp_shift=1.0, seed=5)
+    paths = write_large_pair(spec, tmp_path, fmt="laz", stretch=6.0)
+    truth = json.loads(paths["truth"].read_text())
+    ref, cmp = read(paths["ref"]), read(paths["cmp"])
+    whole = make_pair(spec)
+    # the same density, drawn in four stretches per epoch
+    assert truth["points"] == {"ref": len(ref), "cmp": len(cmp)}
+    assert abs(len(ref) / len(whole.ref) - 1) < 0.02
+    assert abs(len(cmp) / len(whole.cmp) - 1) < 0.02
+    assert truth["cmp_range"] == [1.0, 21.0]
+    # the transform takes the compared epoch onto the design section, coal and belt inside it
+    back = apply_transform(np.array(truth["transform"]), cmp.xyz)
+    assert back[:, 0].min() == pytest.approx(1.0, abs=0.05)
+    assert back[:, 0].max() == pytest.approx(21.0, abs=0.05)
+    assert np.abs(back[:, 1]).max() < W2 + 1e-3 and np.abs(back[:, 2]).max() < H2 + 1e-3
+    # no seam: every metre of chainage holds its share of the shell
+    per_m = np.bincount(np.floor(back[:, 0] - 1.0).astype(int).clip(0, 19), minlength=20)
+    assert per_m.min() > 0.8 * per_m.mean()
+    # the 30 mm sag is in the compared epoch only, at its chainage
+    def roof(xyz, lo, hi):
+        m = (xyz[:, 0] > lo) & (xyz[:, 0] < hi) & (np.abs(xyz[:, 1]) < 0.3) & (xyz[:, 2] > 0)
+        return np.median(xyz[m, 2])
+
+    assert roof(back, 9.7, 10.3) == pytest.approx(H2 - 0.03, abs=2e-3)
+    assert roof(ref.xyz, 9.7, 10.3) == pytest.approx(H2, abs=1e-3)
+    with pytest.raises(ConfigError, match="LAS or LAZ"):
+        write_large_pair(spec, tmp_path, fmt="ply")
