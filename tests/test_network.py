@@ -422,3 +422,31 @@ def test_a_walk_round_a_corner_keeps_its_curve_on_both_drifts() -> None:
     q = edge.centerline.point_at(s)
     d = np.min([ax.project(q).distance for ax in pair.truth.centerlines], axis=0)
     assert np.percentile(d, 95) < 0.01
+
+
+def test_the_mouths_of_a_crossing_nobody_walked_into_do_not_pull_the_curve() -> None:
+    """The walker passes an oblique crossing without looking in: both walls of the main drift
+    have a hole there, and those slices' walls come from the section's extent, 3-5 cm off.
+    Wall lines on either side bracket them closely, so the curve bridges them instead."""
+    from tunneldef.centerline.network import EXTENT_WALLS
+    from tunneldef.synth.network import NetworkPairSpec, Stretch
+
+    ang = np.radians(55.0)
+    reach = 12.0 * np.array([np.cos(ang), np.sin(ang), 0.0])
+    edges = (
+        EdgeSpec("main", ((0.0, 0.0, 0.0), (50.0, 0.0, 0.0)), SectionSpec("rectangle", 5.5, 3.0)),
+        EdgeSpec("xc", (tuple([25.0, 0.0, 0.0] - reach), tuple([25.0, 0.0, 0.0] + reach)),
+                 SectionSpec("rectangle", 4.5, 3.0)),
+    )
+    net = NetworkSpec(edges, (JunctionSpec("x", (25.0, 0.0, 0.0), (0, 1)),))
+    cover = (Stretch(0, 0.0, 50.0),)
+    pair = make_network_pair(NetworkPairSpec(net, ref_coverage=cover, cmp_coverage=cover,
+                                             density=150.0, noise_sigma=0.02, drift=0.0, seed=2))
+    edge = extract_network(pair.ref.xyz).network.edges[0]
+    extent = [r for r in edge.slices if r.methods.get("left") == EXTENT_WALLS]
+    assert len(extent) >= 5 and not any(r.ok for r in extent)
+    assert all("bridged" in r.reason for r in extent)
+    cl = edge.centerline
+    q = cl.point_at(np.arange(2.0, cl.length - 2.0, 0.25))
+    d = pair.truth.centerlines[0].project(q).distance
+    assert np.percentile(d[np.abs(q[:, 0] - 25.0) < 9.0], 95) < 0.01  # 4.8 cm before

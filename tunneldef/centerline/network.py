@@ -242,6 +242,33 @@ def _extent_walls(
     return float(max(wl, min(fl, rl))), float(min(wr, max(fr, rr)))
 
 
+def _drop_bridged_extents(records: list[SliceRecord], widths: float = 2.0,
+                          least: float = 10.0) -> None:
+    """Leave out the section-extent walls of slices that wall lines bracket closely.
+
+    Where a slice's wall lines show one wall or none, :func:`_extent_walls` reads the walls
+    from the section's extent: at the mouth of a drift the walker did not enter (a hole in
+    the wall) that is where the floor and roof end, centimetres from the wall line's position
+    (2-5 cm at an oblique crossing's mouth, against a few millimetres for the wall lines on
+    either side). Such slices are left out (and the curve bridges them, as at a junction)
+    when the nearest wall-line slices before and after them lie within ``widths`` section
+    widths (at least ``least`` m) of each other; elsewhere (whole edges a static scanner sees
+    obliquely) they are the only centres there are and stay.
+    """
+    lined = [r for r in records if r.ok and r.methods.get("left") != EXTENT_WALLS]
+    if not lined:
+        return
+    st = np.array([r.station for r in lined])
+    bridge = max(least, widths * float(np.median([r.width for r in lined])))
+    for r in records:
+        if not (r.ok and r.methods.get("left") == EXTENT_WALLS):
+            continue
+        k = int(np.searchsorted(st, r.station))
+        if 0 < k < len(st) and st[k] - st[k - 1] <= bridge:
+            r.ok = False
+            r.reason = "section-extent walls between wall lines (bridged)"
+
+
 def _in_zones(s: float, zones: list[tuple[float, float]]) -> bool:
     return any(a <= s <= b for a, b in zones)
 
@@ -306,6 +333,7 @@ def _slice_edge(
         rec.width, rec.height = rec.left - rec.right, rec.roof - rec.floor
         rec.ok = True
     smooth_roof_lifts(records, c.neighbour_window)
+    _drop_bridged_extents(records)
     _reject_jumps(records, c)
     ok = [r for r in records if r.ok]
     if ok:
