@@ -193,3 +193,21 @@ def test_detect_refuses_an_undetermined_axial_position(
                        str(tmp_path / "o.ply"))
     assert code == 2 and "along the tunnel is undetermined" in err
     assert not (tmp_path / "o.ply").exists()
+
+
+def test_synth_refuses_a_pair_too_large_for_memory_and_streams_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import tunneldef.cli as cli
+    from tunneldef.io import read
+
+    monkeypatch.setattr(cli, "_available_memory", lambda: 50_000_000)  # 50 MB free
+    code, _, err = run(capsys, "synth", str(tmp_path / "a"), "--length", "30", "--density",
+                       "400", "--format", "laz")
+    assert code == 2 and err.count("\n") == 1 and "--stream" in err
+    assert not (tmp_path / "a" / "ref.laz").exists()
+    code, _, err = run(capsys, "synth", str(tmp_path / "a"), "--length", "30", "--density",
+                       "400", "--format", "laz", "--stream", "--quiet")
+    assert code == 0, err
+    truth = json.loads((tmp_path / "a" / "truth.json").read_text())
+    assert truth["points"]["ref"] == len(read(tmp_path / "a" / "ref.laz")) > 100_000
