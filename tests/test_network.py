@@ -450,3 +450,34 @@ def test_the_mouths_of_a_crossing_nobody_walked_into_do_not_pull_the_curve() -> 
     q = cl.point_at(np.arange(2.0, cl.length - 2.0, 0.25))
     d = pair.truth.centerlines[0].project(q).distance
     assert np.percentile(d[np.abs(q[:, 0] - 25.0) < 9.0], 95) < 0.01  # 4.8 cm before
+
+
+def test_a_stub_whose_curve_ends_short_of_its_junction_is_a_dead_end() -> None:
+    """A cross-cut seen a few metres in keeps a curve over its readable slices only, which
+    can end metres short of the junction it leaves (no node there): it is still a dead end,
+    and so may be left out when it fails its checks; a main drift with a junction along it
+    is not."""
+    from tunneldef.curve import Centerline
+    from tunneldef.network import CenterlineNetwork, Junction, NetworkEdge
+
+    def line(a, b):  # noqa: ANN001, ANN202
+        return Centerline.from_polyline(np.array([a, b], dtype=float), step=0.25)
+
+    main = NetworkEdge(0, "edge-0", line((0, 0, 0), (40, 0, 0)))
+    stub = NetworkEdge(1, "edge-1", line((20, 4.7, 0), (20, 6.2, 0)))  # 1.5 m, 4.7 m away
+    tee = NetworkEdge(2, "edge-2", line((30, 0, 0), (30, 10, 0)), nodes=(1, -1))
+    net = CenterlineNetwork((main, stub, tee), (
+        Junction(0, np.array([20.0, 0, 0]), (0, 1), (20.0, -4.7)),
+        Junction(1, np.array([30.0, 0, 0]), (0, 2), (30.0, 0.0)),
+    ), {})
+    assert [net.is_dead_end(k) for k in range(3)] == [False, True, True]
+    # a junction in the middle of an edge hangs something on it: no dead end
+    mid = CenterlineNetwork((main, stub), (Junction(0, np.array([20.0, 5.4, 0]), (0, 1),
+                                                    (20.0, 0.7)),), {})
+    assert mid.is_dead_end(1) is True  # within END_REACH of its start
+    inner = CenterlineNetwork((main, stub), (Junction(0, np.array([20.0, 5.4, 0]), (0, 1),
+                                                      (20.0, 0.75)),
+                                             Junction(1, np.array([20.0, 6.2, 0]), (1,),
+                                                      (1.5,))), {})
+    assert inner.is_dead_end(1) is False  # left from both ends
+    assert net.without({1: "unreadable"}).meta["left_out"][0]["edge"] == "edge-1"

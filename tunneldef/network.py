@@ -22,6 +22,9 @@ __all__ = ["NO_BRANCH", "Junction", "NetworkEdge", "NetworkProjection", "Centerl
 
 #: ``branch`` of points that belong to no edge.
 NO_BRANCH = 65535
+#: How near one of its ends a junction must list an edge for the edge to leave from that end
+#: (the tolerance :meth:`CenterlineNetwork.without` counts branch ends with), m.
+END_REACH = 1.0
 
 
 @dataclass(frozen=True)
@@ -218,14 +221,33 @@ class CenterlineNetwork:
         return CenterlineNetwork(edges, junctions, dict(self.meta))
 
     def is_dead_end(self, edge_id: int) -> bool:
-        """True when the edge leaves one junction and ends free (a face, a stub, the end of
-        the scan), so that nothing else hangs on it; False for an edge between junctions and
-        for one that drifts pass through (a main drift whose both ends are free)."""
-        a, b = self.edges[edge_id].nodes
-        if (a < 0) == (b < 0):
+        """True when the edge leaves the network at one end only and ends free (a face, a
+        stub, the end of the scan), so that nothing else hangs on it; False for an edge
+        between junctions and for one that drifts pass through (a main drift whose both ends
+        are free, with junctions along it).
+
+        The end it leaves from is a junction node, or a junction that lists the edge with a
+        chainage within ``END_REACH`` of (or beyond) one of its ends: a stub whose curve
+        kept only its readable slices ends short of the junction it leaves.
+        """
+        e = self.edges[edge_id]
+        a, b = e.nodes
+        if a >= 0 and b >= 0:
             return False
-        return not any(edge_id in j.edges for j in self.junctions
-                       if j.id not in (a, b))
+        touched = {end for end, node in enumerate((a, b)) if node >= 0}
+        for j in self.junctions:
+            if j.id in (a, b):
+                continue
+            for k, s in zip(j.edges, j.chainages, strict=True):
+                if k != edge_id:
+                    continue
+                if s <= END_REACH:
+                    touched.add(0)
+                elif s >= e.length - END_REACH:
+                    touched.add(1)
+                else:
+                    return False
+        return len(touched) == 1
 
     def without(self, reasons: dict[int, str]) -> CenterlineNetwork:
         """The network without the edges in ``reasons`` (edge id -> why it is left out).
@@ -245,7 +267,7 @@ class CenterlineNetwork:
         for j in self.junctions:
             members = [(new_id[k], s) for k, s in zip(j.edges, j.chainages, strict=True)
                        if k in new_id]
-            ends = sum(1 if min(s, keep[k].length - s) <= 1.0 else 2 for k, s in members)
+            ends = sum(1 if min(s, keep[k].length - s) <= END_REACH else 2 for k, s in members)
             if ends >= 3:
                 new_j[j.id] = len(junctions)
                 junctions.append(Junction(len(junctions), j.position,
