@@ -488,3 +488,22 @@ def test_slices_thicken_on_a_sparse_scan() -> None:
         along = rng.uniform(0.0, 40.0, 40 * per_metre)
         assert thickness_for(along, 0.2, 200) == pytest.approx(want, rel=0.05), per_metre
     assert thickness_for(np.zeros(0), 0.2, 200) == 0.2
+
+
+def test_a_kilometre_long_drift_is_not_shorter_than_its_curve() -> None:
+    """The cloud's extent along the curve leaves out the outer 0.1 % of points at each end;
+    scaled back, it matches a 1 km drift's length (unscaled it read 998 m, and every pass of a
+    straight 1 km tunnel was refused as longer than its cloud)."""
+    from scipy.spatial import cKDTree
+
+    from tunneldef.centerline.extract import SliceRecord, _pass_quality
+    from tunneldef.curve import Centerline
+
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0.0, 1000.0, 200_000),
+                           rng.uniform(-1.5, 1.5, 200_000), rng.uniform(-1.5, 1.5, 200_000)])
+    cl = Centerline.from_polyline(np.array([[0.0, 0, 0], [1000.0, 0, 0]]), step=0.5)
+    rec = SliceRecord(station=500.0, centre=np.zeros(3), width=3.0, height=3.0, ok=True)
+    q = _pass_quality(1, cl, [rec], cKDTree(pts))
+    assert q.extent == pytest.approx(1000.0, abs=0.3)
+    assert q.possible, q.reason
