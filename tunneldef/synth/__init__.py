@@ -86,7 +86,7 @@ from .network import (
     write_network_pair,
 )
 from .sampling import _sample_epoch, write_epochs
-from .scene import _Axis, _draw_heaps, _make_scene
+from .scene import _Axis, _draw_heaps, _make_scene, _pair_scene
 
 __all__ = [
     "SectionSpec",
@@ -315,16 +315,8 @@ def make_pair(
         spec = PairSpec(**changes)
     elif changes:
         spec = dataclasses.replace(spec, **changes)
-    tunnel = spec.tunnel
     g_scene, g_ref, g_cmp, g_motion, g_coal = _streams(spec.seed)
-    scene = _make_scene(tunnel, g_scene)
-    ref_range = (0.0, float(tunnel.length))
-    c0 = float(spec.cmp_shift)
-    cmp_range = (c0, c0 + float(tunnel.length if spec.cmp_length is None else spec.cmp_length))
-    heaps_ref = heaps_cmp = None
-    if tunnel.conveyor:
-        heaps_ref = _draw_heaps(g_scene, *ref_range)
-        heaps_cmp = _draw_heaps(g_coal, *cmp_range) if spec.coal_change else heaps_ref
+    scene, ref_range, cmp_range, heaps_ref, heaps_cmp = _pair_scene(spec, g_scene, g_coal)
     notify(progress, "synthetic pair", 0.0)
     with timed_stage(log, "synthetic reference epoch"):
         ref = _sample_epoch(scene, *ref_range, g_ref, (), heaps_ref)

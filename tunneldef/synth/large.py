@@ -22,7 +22,7 @@ from ..progress import ProgressCallback, notify
 from ..transforms import apply_transform
 from .design import PairSpec, _rigid_motion
 from .sampling import _sample_epoch
-from .scene import _draw_heaps, _make_scene
+from .scene import _pair_scene
 
 log = logging.getLogger(__name__)
 
@@ -74,17 +74,9 @@ def write_large_pair(
         raise ConfigError(f"a large synthetic pair is written as LAS or LAZ, not {fmt!r}")
     if not stretch > 0:
         raise ConfigError(f"stretch must be positive, got {stretch!r}")
-    tunnel = spec.tunnel
     seeds = np.random.SeedSequence(spec.seed).spawn(4)
     g_scene, g_motion, g_coal = (np.random.default_rng(s) for s in seeds[:3])
-    scene = _make_scene(tunnel, g_scene)
-    ref_range = (0.0, float(tunnel.length))
-    c0 = float(spec.cmp_shift)
-    cmp_range = (c0, c0 + float(tunnel.length if spec.cmp_length is None else spec.cmp_length))
-    heaps_ref = heaps_cmp = None
-    if tunnel.conveyor:
-        heaps_ref = _draw_heaps(g_scene, *ref_range)
-        heaps_cmp = _draw_heaps(g_coal, *cmp_range) if spec.coal_change else heaps_ref
+    scene, ref_range, cmp_range, heaps_ref, heaps_cmp = _pair_scene(spec, g_scene, g_coal)
     motion, transform, yaw, tilt_axis = _rigid_motion(
         g_motion, spec.yaw_deg, spec.tilt_deg, spec.translation
     )

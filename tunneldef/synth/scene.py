@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -192,3 +193,18 @@ def _heap_height(heaps: np.ndarray, s: np.ndarray) -> np.ndarray:
         np.maximum(h, peak * _cos_taper(s - c, length), out=h)
     return h
 
+
+
+def _pair_scene(spec: Any, g_scene: np.random.Generator, g_coal: np.random.Generator) -> tuple:
+    """A pair's scene, the chainage ranges of its two epochs and their coal heaps:
+    ``(scene, ref_range, cmp_range, heaps_ref, heaps_cmp)`` (heaps None without a conveyor)."""
+    tunnel = spec.tunnel
+    scene = _make_scene(tunnel, g_scene)
+    ref_range = (0.0, float(tunnel.length))
+    c0 = float(spec.cmp_shift)
+    cmp_range = (c0, c0 + float(tunnel.length if spec.cmp_length is None else spec.cmp_length))
+    heaps_ref = heaps_cmp = None
+    if tunnel.conveyor:
+        heaps_ref = _draw_heaps(g_scene, *ref_range)
+        heaps_cmp = _draw_heaps(g_coal, *cmp_range) if spec.coal_change else heaps_ref
+    return scene, ref_range, cmp_range, heaps_ref, heaps_cmp
