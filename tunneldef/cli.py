@@ -364,7 +364,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
                 config = config.replace(network={"drift_correction": False})
             result = detect_network(ref, cmp, config, progress=progress, tiles=tiles)
         else:
-            result = detect(ref, cmp, config, progress=progress, tiles=tiles)
+            result = detect(ref, cmp, config, progress=progress, tiles=tiles,
+                            overwrite_compared=True)
     write_with_fields(out, cmp_path, result.cloud.xyz, result.cloud.fields, keep=keep,
                       strict=args.strict, note=result.cloud.meta.get("note"))
     summary = result.summary()

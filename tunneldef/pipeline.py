@@ -40,6 +40,7 @@ from .quality import (
     registration_checks,
     topology_checks,
 )
+from .transforms import apply_transform
 
 __all__ = ["detect", "detect_network", "register_epochs", "check_epochs", "is_network",
            "Result", "NetworkResult", "RegisteredPair", "OUTPUT_FIELDS"]
@@ -53,6 +54,7 @@ OUTPUT_FIELDS = ("deformation", "deformation_horizontal", "deformation_vertical"
 _MIN_POINTS = 1000
 _MAX_SCALE_RATIO = 4.0
 _MIN_OVERLAP = 0.2
+_CHUNK = 2_000_000  # points mapped at once by an in-place transform
 
 
 def check_epochs(ref: Cloud, cmp: Cloud, *, network: bool = False) -> None:
@@ -281,6 +283,7 @@ def detect(
     ref: Cloud, cmp: Cloud, config: Config | None = None, *,
     progress: ProgressCallback | None = None,
     tiles: dict[str, Any] | None = None,
+    overwrite_compared: bool = False,
 ) -> Result:
     """Register the compared epoch onto the reference and measure deformation.
 
@@ -296,6 +299,10 @@ def detect(
         Run the deformation stage in chainage tiles as Dask tasks: keyword arguments of
         :func:`tunneldef.tiles.tiled_deformation` (``tile_length``, ``memory_gb``, ``engine``,
         ``workdir``); the values are those of the untiled stage.
+    overwrite_compared : bool
+        Map ``cmp``'s coordinates into the reference frame in place and return ``cmp`` itself
+        as ``Result.cloud`` (its fields added), instead of a copy: one copy of the compared
+        epoch less in memory, for callers that no longer need it in its own frame.
 
     Returns
     -------
@@ -333,16 +340,27 @@ def detect(
 
     t = time.perf_counter()
     transform = np.asarray(reg.transform, dtype=np.float64)
-    moved = cmp.transformed(transform)
+    if overwrite_compared and cmp.xyz.flags.writeable:
+        for a in range(0, len(cmp), _CHUNK):
+            cmp.xyz[a:a + _CHUNK] = apply_transform(transform, cmp.xyz[a:a + _CHUNK])
+        moved = cmp
+    else:
+        moved = cmp.transformed(transform)
     ref_cl = reg_all.ref_extraction.centerline
     if tiles is None:
         projection = ref_cl.project(moved.xyz)
         inside = projection.inside
     else:
+        from .deformation.sections import surface_labels
         from .tiles import project_chunked
 
+        # the offsets serve the surface labels only: dropped before the tiles run
         chainage, lateral, vertical, inside = project_chunked(ref_cl, moved.xyz, full=True)
+        surface = surface_labels(chainage, lateral, vertical,
+                                 step=config.deformation.section_step)
+        del lateral, vertical
     overlap = float(np.mean(inside))
+    del inside
     if overlap < _MIN_OVERLAP:
         raise EpochMismatchError(
             f"only {100 * overlap:.0f} % of the compared points lie along the reference "
@@ -360,8 +378,9 @@ def detect(
         from .tiles import tiled_deformation
 
         d = tiled_deformation(ref.xyz, moved.xyz, ref_cl, settings=config.deformation,
-                              projection=(chainage, lateral, vertical),
+                              chainage=chainage, surface=surface,
                               registration_sigma=reg_sigma, progress=progress, **tiles)
+        del chainage, surface
     reg_all.quality.add(deformation_checks(d, config.quality))
     if not reg_all.quality.verified:
         log.warning("%s: %s", UNVERIFIED, "; ".join(c.reason() for c in reg_all.quality.failed))
@@ -636,12 +655,14 @@ def detect_network(
                                     settings=config.deformation, projection=proj,
                                     registration_sigma=reg_sigma)
         else:  # the edge's own chainage tiles, as Dask tasks
+            from .deformation.sections import surface_labels
             from .tiles import tiled_deformation
 
+            surface = surface_labels(proj.chainage, proj.lateral, proj.vertical,
+                                     step=config.deformation.section_step)
             d = tiled_deformation(ref.xyz[mr], moved.xyz[mc], e.centerline,
-                                  settings=config.deformation,
-                                  projection=(proj.chainage, proj.lateral, proj.vertical),
-                                  registration_sigma=reg_sigma, **tiles)
+                                  settings=config.deformation, chainage=proj.chainage,
+                                  surface=surface, registration_sigma=reg_sigma, **tiles)
         report.add([dataclasses.replace(c, name=c.name.replace(".", f".edge{e.id}.", 1))
                     for c in deformation_checks(d, qc)])
         results.append((e, mc, d))

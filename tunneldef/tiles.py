@@ -125,19 +125,19 @@ def _cut(
     workdir: Path, ref: np.ndarray, cmp: np.ndarray, ref_s: np.ndarray, cmp_s: np.ndarray,
     edges: np.ndarray, margin: float,
 ) -> list[_Tile]:
-    """Write each tile's points (in file order) to ``workdir/tile_XXXX``."""
-    r_order, c_order = np.argsort(ref_s, kind="stable"), np.argsort(cmp_s, kind="stable")
-    r_sorted, c_sorted = ref_s[r_order], cmp_s[c_order]
+    """Write each tile's points (in file order) to ``workdir/tile_XXXX``.
+
+    Each tile's points are found by a pass over the chainages (no sorted copies of the
+    whole clouds: memory beyond the clouds stays that of one tile)."""
     tiles = []
     for i in range(len(edges) - 1):
         a, b = edges[i], edges[i + 1]
         folder = workdir / f"tile_{i:04d}"
         folder.mkdir()
-        ri = np.sort(r_order[slice(*np.searchsorted(r_sorted, [a - margin, b + margin]))])
-        ci = np.sort(c_order[slice(*np.searchsorted(c_sorted, [a - margin, b + margin]))])
+        ri = np.flatnonzero((ref_s >= a - margin) & (ref_s < b + margin))
+        ci = np.flatnonzero((cmp_s >= a - margin) & (cmp_s < b + margin))
         owned = (cmp_s[ci] >= a) & (cmp_s[ci] < b)
         np.save(folder / "ref.npy", ref[ri])
-        np.save(folder / "ref_owned.npy", (ref_s[ri] >= a) & (ref_s[ri] < b))
         np.save(folder / "cmp.npy", cmp[ci])
         np.save(folder / "cmp_index.npy", ci)
         np.save(folder / "cmp_owned.npy", owned)
@@ -233,7 +233,8 @@ def tiled_deformation(
     memory_gb: float = 1.5,
     engine: Engine | None = None,
     workdir: str | os.PathLike[str] | None = None,
-    projection: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    chainage: np.ndarray | None = None,
+    surface: np.ndarray | None = None,
     registration_sigma: float = 0.0,
     progress: ProgressCallback | None = None,
 ) -> DeformationResult:
@@ -256,8 +257,11 @@ def tiled_deformation(
     workdir : path, optional
         Folder for the tiles' files, readable by every worker; a temporary folder (removed
         afterwards) is made inside it.
-    projection : (chainage, lateral, vertical), optional
-        The compared points' projection on ``centerline`` when the caller has it.
+    chainage, surface : ndarray, shape (N,), optional
+        The compared points' chainage on ``centerline`` and their surface labels
+        (:func:`tunneldef.deformation.sections.surface_labels`), when the caller has them (both
+        or neither; a caller that drops the lateral and vertical offsets once it has the labels
+        keeps them out of memory while the tiles run).
     registration_sigma : float
         Standard uncertainty of the registration, metres (see ``compute_deformation``).
     progress : callable, optional
@@ -266,17 +270,23 @@ def tiled_deformation(
     Returns
     -------
     DeformationResult
-        The same values as the untiled stage (within float rounding, < 1e-6 m).
+        The same values as the untiled stage (within float rounding, < 1e-6 m). When the
+        survey is cut into more than one tile, the merged ``deformation``, ``horizontal``,
+        ``vertical`` and ``lod95`` are float32 (the precision they are written in: under
+        1e-7 m below 1 m), which keeps half their memory on large surveys.
     """
     settings = settings or DeformationConfig()
     engine = engine or Engine(None, 1)
     margin = tile_margin(settings)
     notify(progress, "tiles", 0.0)
     ref_s = project_chunked(centerline, ref_xyz)[0]
-    if projection is None:
-        cmp_s, lat, ver, _ = project_chunked(centerline, cmp_xyz, full=True)
-    else:
-        cmp_s, lat, ver = projection
+    if (chainage is None) != (surface is None):
+        raise ValueError("give both the chainage and the surface labels, or neither")
+    if chainage is None:
+        chainage, lat, ver, _ = project_chunked(centerline, cmp_xyz, full=True)
+        surface = surface_labels(chainage, lat, ver, step=settings.section_step)
+        del lat, ver
+    cmp_s = chainage
     from .deformation.compute import _coverage
 
     coverage = _coverage(ref_xyz, centerline, -1, ref_s)
@@ -301,6 +311,7 @@ def tiled_deformation(
             pickle.dump((centerline, settings), f)
         tiles = [t for t in _cut(tmp, ref_xyz, cmp_xyz, ref_s, cmp_s, edges, margin)
                  if t.owned > 0]
+        del ref_s
         logger.info("%d tiles of %.1f m (+ %.1f m margins) in %s", len(tiles), tile_length,
                     margin, tmp)
         notify(progress, "tiles", 1.0)
@@ -321,13 +332,14 @@ def tiled_deformation(
         engine.map(_measure_task,
                    [(str(tmp), t.folder, coverage, inputs, registration_sigma) for t in tiles],
                    stage="tiles: deformation", progress=progress)
-        return _merge(tiles, cmp_xyz, cmp_s, lat, ver, centerline, settings)
+        return _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _merge(tiles, cmp_xyz, cmp_s, lat, ver, centerline, settings) -> DeformationResult:
-    """The owned points' fields of every tile, in the compared epoch's order."""
+def _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings) -> DeformationResult:
+    """The owned points' fields of every tile, in the compared epoch's order (float fields as
+    float32)."""
     n = len(cmp_xyz)
     names = ["deformation", "horizontal", "vertical", "shell"]
     if settings.method == "robust":
@@ -341,11 +353,10 @@ def _merge(tiles, cmp_xyz, cmp_s, lat, ver, centerline, settings) -> Deformation
         for name in names:
             a = _load(t.folder, f"out_{name}")[0]
             if name not in out:
-                out[name] = np.empty(n, dtype=a.dtype)
+                out[name] = np.empty(n, dtype=np.float32 if a.dtype.kind == "f" else a.dtype)
             out[name][index] = a
     if not seen.all():  # every point lies in exactly one owned interval
         raise RuntimeError(f"{int((~seen).sum())} compared points in no tile")
-    surface = surface_labels(cmp_s, lat, ver, step=settings.section_step)
     return DeformationResult(
         deformation=out["deformation"], horizontal=out["horizontal"], vertical=out["vertical"],
         chainage=cmp_s, surface=surface, shell=out["shell"], xyz=cmp_xyz,

@@ -59,8 +59,9 @@ def global_inputs(
     so each gets the same voxels.
     """
     origin = ref.mean(axis=0)
-    lo_cmp = (cmp - origin).min(axis=0)
-    lo = np.minimum((ref - origin).min(axis=0), lo_cmp)
+    # min(x - o) is min(x) - o exactly (rounding is monotonic): no shifted copy of the clouds
+    lo_cmp = cmp.min(axis=0) - origin
+    lo = np.minimum(ref.min(axis=0) - origin, lo_cmp)
     corner = lo - (settings.normal_radius + 2.0 * settings.core_spacing)
     return {"origin": origin, "core_anchor": lo_cmp, "normal_corner": corner}
 

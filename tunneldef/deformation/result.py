@@ -61,17 +61,18 @@ class DeformationResult:
     def fields(self) -> dict[str, np.ndarray]:
         """Per-point fields to write: float32 ``deformation``, ``deformation_horizontal``,
         ``deformation_vertical``, ``chainage``; uint8 ``surface``, ``shell``; plus uint8
-        ``significant`` and float32 ``lod95`` when the robust estimator gave them."""
+        ``significant`` and float32 ``lod95`` when the robust estimator gave them. Arrays
+        already of their field's type are shared, not copied."""
         out = {
-            "deformation": self.deformation.astype(np.float32),
-            "deformation_horizontal": self.horizontal.astype(np.float32),
-            "deformation_vertical": self.vertical.astype(np.float32),
-            "chainage": self.chainage.astype(np.float32),
-            "surface": self.surface.astype(np.uint8),
+            "deformation": self.deformation.astype(np.float32, copy=False),
+            "deformation_horizontal": self.horizontal.astype(np.float32, copy=False),
+            "deformation_vertical": self.vertical.astype(np.float32, copy=False),
+            "chainage": self.chainage.astype(np.float32, copy=False),
+            "surface": self.surface.astype(np.uint8, copy=False),
             "shell": self.shell.astype(np.uint8),
         }
         if self.significant is not None:
             out["significant"] = np.asarray(self.significant).astype(np.uint8)
         if self.lod95 is not None:
-            out["lod95"] = np.asarray(self.lod95).astype(np.float32)
+            out["lod95"] = np.asarray(self.lod95).astype(np.float32, copy=False)
         return out

@@ -435,7 +435,7 @@ def verify_registration(
     n_image = max(_IMAGE_SAMPLE, int(points_per_metre * length))
     n_plane = max(2 * _SAMPLE, int(2 * points_per_metre * length))
     n_all = max(n_image, n_plane)
-    ref_all = _shuffled_subset(np.asarray(ref_xyz) - origin, n_all, 11)
+    ref_all = _shuffled_subset(np.asarray(ref_xyz), n_all, 11) - origin
     cmp_all = _shuffled_subset(np.asarray(cmp_xyz), n_all, 12)
     if transform is not None:
         cmp_all = apply_transform(np.asarray(transform, dtype=np.float64), cmp_all)
