@@ -95,3 +95,39 @@ def test_margin_covers_the_estimator_reach() -> None:
     assert tile_margin(cfg) > 1.0 + cfg.normal_radius + 2 * cfg.cylinder_radius
     assert tile_margin(Config().replace(deformation={"method": "knn"}).deformation) >= (
         3 * cfg.max_distance)
+
+
+def test_tiles_take_the_callers_chainage_and_labels(registered) -> None:
+    """The chainage and surface labels a caller hands over give the fields the tiles draw
+    themselves; merged float fields are float32 (as written); half a projection is refused."""
+    from tunneldef.deformation.sections import surface_labels
+
+    ref, cmp, line = registered
+    settings = Config().replace(deformation={"method": "knn"}).deformation
+    p = line.project(cmp)
+    surface = surface_labels(p.chainage, p.lateral, p.vertical, step=settings.section_step)
+    own = tiled_deformation(ref, cmp, line, settings=settings, tile_length=25.0)
+    given = tiled_deformation(ref, cmp, line, settings=settings, tile_length=25.0,
+                              chainage=p.chainage, surface=surface)
+    assert_fields_equal(given.fields(), own.fields())
+    assert own.deformation.dtype == np.float32 and own.chainage.dtype == np.float64
+    with pytest.raises(ValueError, match="both"):
+        tiled_deformation(ref, cmp, line, settings=settings, tile_length=25.0,
+                          chainage=p.chainage)
+
+
+def test_detect_can_map_the_compared_epoch_in_place(tmp_path) -> None:
+    """``overwrite_compared``: the compared cloud itself comes back in the reference frame,
+    with the coordinates and fields of the copying run."""
+    from tunneldef.pipeline import detect
+
+    pair = small_pair(length=40.0, density=80.0, seed=2)
+    tiles = {"tile_length": 15.0, "workdir": tmp_path}
+    copied = detect(pair.ref, pair.cmp.copy(), tiles=tiles)
+    cmp = pair.cmp.copy()
+    before = cmp.xyz.copy()
+    in_place = detect(pair.ref, cmp, tiles=tiles, overwrite_compared=True)
+    assert in_place.cloud is cmp
+    assert not np.allclose(cmp.xyz, before)  # moved by the synthetic pair's rigid motion
+    np.testing.assert_allclose(cmp.xyz, copied.cloud.xyz, rtol=0, atol=1e-9)
+    assert_fields_equal(in_place.cloud.fields, copied.cloud.fields)
