@@ -110,6 +110,29 @@ def test_points_are_assigned_to_their_branch(pair, result) -> None:  # noqa: ANN
     assert np.all(pr.branch[truth.stray] == NO_BRANCH)
 
 
+def test_branches_and_common_lengths_read_a_chunk_at_a_time(pair, result,  # noqa: ANN001
+                                                            monkeypatch) -> None:  # noqa: ANN001
+    """The chunked edge assignment is the whole projection's, and the common lengths (1 m bins
+    with 20 points of each epoch) are the ones counted over whole projections."""
+    from tunneldef.registration import network as reg_network
+    from tunneldef.registration.network import common_lengths
+
+    monkeypatch.setattr(reg_network, "_CHUNK", 9_999)
+
+    net, xyz = result.network, pair.ref.xyz
+    whole = net.project(xyz, max_distance=5.0)
+    np.testing.assert_array_equal(net.branches(xyz, max_distance=5.0, chunk=9_999), whole.branch)
+    half = xyz[::2]
+    ph = net.project(half, max_distance=5.0)
+    got = common_lengths(net, xyz, half)
+    for e in net.edges:
+        counts = [np.bincount(np.floor(p.chainage[(p.branch == e.id) & p.inside]).astype(int),
+                              minlength=int(np.ceil(e.length)) + 1)[:int(np.ceil(e.length)) + 1]
+                  for p in (whole, ph)]
+        assert got[e.id] == float(np.sum((counts[0] >= 20) & (counts[1] >= 20)))
+        assert got[e.id] > 0.8 * e.length
+
+
 def test_graph_json_ready(result) -> None:  # noqa: ANN001
     d = json.loads(json.dumps(result.network.to_dict(curves=False)))
     assert {"nodes", "edges"} <= set(d)

@@ -207,6 +207,17 @@ class CenterlineNetwork:
         return NetworkProjection(branch, out["chainage"], out["lateral"], out["vertical"],
                                  out["distance"], inside, junction)
 
+    def branches(
+        self, xyz: np.ndarray, *, max_distance: float = np.inf, chunk: int = 2_000_000
+    ) -> np.ndarray:
+        """``project(xyz, max_distance=...).branch``, projected ``chunk`` points at a time (a
+        point's edge depends on that point alone), so that a large cloud needs no full-size
+        projection arrays."""
+        out = np.empty(len(xyz), dtype=np.uint16)
+        for a in range(0, len(xyz), chunk):
+            out[a:a + chunk] = self.project(xyz[a:a + chunk], max_distance=max_distance).branch
+        return out
+
     def transformed(self, transform: np.ndarray) -> CenterlineNetwork:
         """The same network mapped by a 4 x 4 rigid transform."""
         edges = tuple(

@@ -633,8 +633,10 @@ def detect_network(
     timings["registration"] = time.perf_counter() - t
     t = time.perf_counter()
     reach = 2.0 * max(float(ref_net.grid.half_width.max()), 1.0)
-    pc = net.project(moved.xyz, max_distance=reach)
-    pr = net.project(ref.xyz, max_distance=reach)
+    # each point's edge, a chunk at a time (full-size projections of both epochs would take
+    # about 100 bytes per point)
+    branch_c = net.branches(moved.xyz, max_distance=reach, chunk=_CHUNK)
+    branch_r = net.branches(ref.xyz, max_distance=reach, chunk=_CHUNK)
     n = len(moved.xyz)
     out: dict[str, np.ndarray] = {}
     branch = np.full(n, NO_BRANCH, dtype=np.uint16)
@@ -644,8 +646,8 @@ def detect_network(
         # both epochs cut alike: the points assigned to this edge (reference points of other
         # drifts near a junction put the shell envelope of a section where the compared
         # epoch has none, and read as false change of 0.2 m beside a 45 degree junction)
-        mc = np.flatnonzero(pc.branch == e.id)
-        mr = pr.branch == e.id
+        mc = np.flatnonzero(branch_c == e.id)
+        mr = branch_r == e.id
         if len(mc) < 1000 or mr.sum() < 1000:
             continue
         notify(progress, "deformation", e.id / len(net.edges))

@@ -48,6 +48,8 @@ from .verify import coherent_misfit
 
 __all__ = ["NetworkRegistration", "register_networks", "common_lengths", "correct_drift"]
 
+_CHUNK = 2_000_000  # points projected at once by common_lengths
+
 
 @dataclass
 class NetworkRegistration:
@@ -451,18 +453,19 @@ def common_lengths(
 ) -> dict[int, float]:
     """Per edge, the length covered by both epochs (1 m bins with at least ``min_points``
     points of each, points within ``max_distance`` of the edge), metres."""
-    pr = net.project(ref_xyz, max_distance=max_distance)
-    pc = net.project(cmp_xyz, max_distance=max_distance)
-    out = {}
-    for e in net.edges:
-        nb = int(np.ceil(e.length / bin_m)) + 1
-        counts = []
-        for p in (pr, pc):
-            m = (p.branch == e.id) & p.inside
-            counts.append(np.bincount(np.floor(p.chainage[m] / bin_m).astype(np.int64),
-                                      minlength=nb)[:nb])
-        out[e.id] = float(np.sum((counts[0] >= min_points) & (counts[1] >= min_points)) * bin_m)
-    return out
+    nbins = {e.id: int(np.ceil(e.length / bin_m)) + 1 for e in net.edges}
+    counts = [{i: np.zeros(nb, dtype=np.int64) for i, nb in nbins.items()} for _ in range(2)]
+    for xyz, count in zip((ref_xyz, cmp_xyz), counts, strict=True):
+        for a in range(0, len(xyz), _CHUNK):  # a chunk at a time: no full-size projection
+            p = net.project(xyz[a:a + _CHUNK], max_distance=max_distance)
+            for e in net.edges:
+                m = (p.branch == e.id) & p.inside
+                nb = nbins[e.id]
+                count[e.id] += np.bincount(np.floor(p.chainage[m] / bin_m).astype(np.int64),
+                                           minlength=nb)[:nb]
+    return {e.id: float(np.sum((counts[0][e.id] >= min_points)
+                               & (counts[1][e.id] >= min_points)) * bin_m)
+            for e in net.edges}
 
 
 def _plane_residual(ref_tree: cKDTree, normals: np.ndarray, ref_pts: np.ndarray,
