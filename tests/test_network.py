@@ -404,6 +404,36 @@ def test_a_corner_is_flagged_like_a_junction_and_a_bend_is_not() -> None:
     assert _corners(Centerline.from_polyline(ell[:201], step=0.1), 2.0, 0.5) == []
 
 
+def test_a_chamber_at_a_drifts_end_is_no_corner() -> None:
+    """A 2 m deep chamber 1.6-5.8 m from where the compared walk starts bends the end of the
+    plan's medial axis by 48 degrees, but reaches no farther than a niche: no corner (it was
+    one, and a plain drift was refused as a walk round a corner). A corner's legs still count
+    when they reach 3 m beyond the other drift's wall."""
+    from tunneldef.centerline.skeleton import plan_topology, sharp_turns
+    from tunneldef.synth import DeformationSpec, PairSpec, SectionSpec, TunnelSpec, make_pair
+
+    spec = PairSpec(
+        tunnel=TunnelSpec(length=26.7, grade=-0.02, section=SectionSpec(
+            kind="trapezoid", width=3.47, height=2.32), density=369.5, noise_sigma=0.0293,
+            outlier_fraction=0.003, chamber=True, equipment=True, holes=1, roughness=0.0253,
+            chamber_depth=2.0, chamber_length=4.0, chamber_side="left"),
+        deformations=(DeformationSpec(kind="wall_bulge", chainage=17.8, length=3.0, width=1.0,
+                                      amplitude=0.048, side="right"),),
+        cmp_shift=9.673, yaw_deg=346.1, tilt_deg=0.75, seed=13000018)
+    pair = make_pair(spec)
+    assert plan_topology(pair.cmp.xyz).corners == 0
+    assert plan_topology(pair.ref.xyz).corners == 0
+    # an L: 20 m, then 8 m round the corner (reaching 8 m across); and a hook at an end as the
+    # chamber's: 3.5 m across, then 3 m on, which reaches 3.5 m only
+    leg = np.linspace(0.0, 1.0, 81)[:, None]
+    ell = np.vstack([leg * [20.0, 0.0], [20.0, 0.0] + leg[1:] * [0.0, 8.0]])
+    hook = np.vstack([leg * [20.0, 0.0], [20.0, 0.0] + leg[1:] * [0.0, 3.5],
+                      [20.0, 3.5] + leg[1:] * [3.0, 0.0]])
+    assert len(sharp_turns(ell, 1.8, trim=1.8, min_leg=4.8)) == 1
+    assert len(sharp_turns(hook, 1.8, trim=1.8)) == 1
+    assert sharp_turns(hook, 1.8, trim=1.8, min_leg=4.8) == []
+
+
 def test_a_walk_round_a_corner_keeps_its_curve_on_both_drifts() -> None:
     """The walker goes down the main drift, a few metres past a cross-cut (a stub the skeleton
     prunes) and into the cross-cut: one edge that turns a right-angle corner. The slices there

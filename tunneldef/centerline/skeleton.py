@@ -48,7 +48,8 @@ def path_half_width(grid: PlanGrid, path: np.ndarray) -> float:
 
 
 def sharp_turns(
-    xy: np.ndarray, half_width: float, *, trim: float = 0.0, step: float = 0.25
+    xy: np.ndarray, half_width: float, *, trim: float = 0.0, step: float = 0.25,
+    min_leg: float = 0.0,
 ) -> list[tuple[float, float]]:
     """Corners along a plan polyline: the arclength (m) and turn (degrees) of each stretch
     where the heading over a chord of ``half_width + 2`` m before a station differs from the
@@ -61,6 +62,13 @@ def sharp_turns(
         Points in order, metres: the arclength is along them, the headings in plan.
     half_width : float
         The drift's half-width, metres.
+    min_leg : float
+        A corner's legs must both reach this far from the corner across the other leg's
+        heading (the polyline's farthest point before it from the line of the heading after,
+        and the other way round), metres; 0 keeps every turn. An alcove or chamber at a
+        drift's end bends the end of its medial axis by a right angle too, but its "leg"
+        reaches no farther than a niche does (the rule that prunes dead ends:
+        ``network.min_branch_length`` beyond the drift's wall).
     """
     pts = np.asarray(xy, dtype=np.float64)
     if len(pts) < 2:
@@ -85,6 +93,14 @@ def sharp_turns(
     edges = np.flatnonzero(np.diff(np.concatenate([[0], sharp.astype(np.int8), [0]])))
     for a, b in zip(edges[::2], edges[1::2], strict=True):
         j = a + int(np.argmax(turn[a:b]))
+        if min_leg > 0:
+            rel = xy - p1[j]
+            before, after = arc < s[j], arc > s[j]
+            # farthest reach of each leg across the other leg's heading
+            reach_after = np.abs(rel[after] @ np.array([-u[j, 1], u[j, 0]]))
+            reach_before = np.abs(rel[before] @ np.array([-w[j, 1], w[j, 0]]))
+            if min(reach_after.max(initial=0.0), reach_before.max(initial=0.0)) < min_leg:
+                continue
         out.append((float(s[j]), float(turn[j])))
     return out
 
@@ -553,5 +569,7 @@ def plan_topology(
         for e in graph.edges:
             half = path_half_width(grid, e.path)
             # a free end's medial axis forks to the face's corners within a half-width
-            corners += len(sharp_turns(grid.to_world(e.path), half, trim=half))
+            # and an alcove at a drift's end bends it too, but reaches no farther than a niche
+            corners += len(sharp_turns(grid.to_world(e.path), half, trim=half,
+                                       min_leg=half + nc.min_branch_length))
     return PlanTopology(lengths, len(graph.junctions), corners=corners)
