@@ -510,8 +510,9 @@ class PlanTopology:
     reason : str
         Why the plan says nothing ("" when it was read).
     corners : int
-        Sharp turns of the drifts away from junctions (:func:`sharp_turns`): a walk round
-        a corner, e.g. from a drift's end into a cross-cut.
+        Sharp turns of the drifts away from junctions (:func:`sharp_turns`) whose legs both
+        reach ``network.min_branch_length`` beyond the other drift's wall: a walk round a
+        corner, e.g. from a drift's end into a cross-cut (not a chamber at a drift's end).
     """
 
     lengths: tuple[float, ...]
