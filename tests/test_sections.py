@@ -209,3 +209,18 @@ def test_sections_of_a_roof_sag():
         assert abs(rows[k]["roof_mean_vertical"]) < 0.004
         assert abs(rows[k]["mean_horizontal"]) < 0.004
         assert 0.015 < rows[k]["mean_abs"] < 0.035  # the noise level (paper Table 4: 27 mm)
+
+
+def test_surface_labels_are_the_same_a_chunk_at_a_time(monkeypatch) -> None:
+    """Labels drawn a chunk at a time (large surveys) equal those drawn at once, bins with
+    too few points taking the whole cloud's extents."""
+    from tunneldef.deformation import sections
+
+    rng = np.random.default_rng(4)
+    n = 20_000
+    s = np.concatenate([rng.uniform(0.0, 40.0, n - 10), [55.5] * 10])  # a sparse last bin
+    lat, ver = rng.normal(0.0, 2.0, n), rng.normal(0.0, 1.5, n)
+    whole = sections.surface_labels(s, lat, ver, step=1.0)
+    monkeypatch.setattr(sections, "_CHUNK", 777)
+    np.testing.assert_array_equal(sections.surface_labels(s, lat, ver, step=1.0), whole)
+    assert set(np.unique(whole)) == {0, 1, 2, 3}

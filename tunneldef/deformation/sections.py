@@ -40,6 +40,7 @@ logger = logging.getLogger(__name__)
 
 _EXTENT_QUANTILE = 0.95
 _MIN_EXTENT_POINTS = 30
+_CHUNK = 1_000_000  # points labelled at once
 
 
 def _half_extents(values: np.ndarray, fallback: float) -> float:
@@ -94,28 +95,32 @@ def surface_labels(
         _half_extents(ver[ver > 0], 1.0),
         _half_extents(-ver[ver < 0], 1.0),
     ]
+    # per bin, not per point: a large survey's labels need no (N, 4) array of extents
     b = np.floor(s / step).astype(np.int64)
+    b -= b.min()
     order = np.argsort(b, kind="stable")
-    bins, starts = np.unique(b[order], return_index=True)
-    ends = np.append(starts[1:], n)
-    # per-point half-extents (left, right, up, down)
-    ext = np.empty((n, 4))
-    for i0, i1 in zip(starts, ends, strict=True):
-        sel = order[i0:i1]
+    counts = np.bincount(b)
+    ends = np.cumsum(counts)
+    ext = np.empty((len(counts), 4))  # half-extents (left, right, up, down) of each bin
+    for k in np.flatnonzero(counts):
+        sel = order[ends[k] - counts[k]:ends[k]]
         la, ve = lat[sel], ver[sel]
-        ext[sel] = [
+        ext[k] = [
             _half_extents(la[la > 0], glob[0]),
             _half_extents(-la[la < 0], glob[1]),
             _half_extents(ve[ve > 0], glob[2]),
             _half_extents(-ve[ve < 0], glob[3]),
         ]
-    nl = np.where(lat >= 0, lat / ext[:, 0], -lat / ext[:, 1])
-    nv = np.where(ver >= 0, ver / ext[:, 2], -ver / ext[:, 3])
-    labels[:] = np.where(
-        nv >= nl,
-        np.where(ver >= 0, ROOF, FLOOR),
-        np.where(lat >= 0, LEFT_WALL, RIGHT_WALL),
-    )
+    del order
+    for a in range(0, n, _CHUNK):  # a chunk at a time (point by point: the same labels)
+        e, la, ve = ext[b[a:a + _CHUNK]], lat[a:a + _CHUNK], ver[a:a + _CHUNK]
+        nl = np.where(la >= 0, la / e[:, 0], -la / e[:, 1])
+        nv = np.where(ve >= 0, ve / e[:, 2], -ve / e[:, 3])
+        labels[a:a + _CHUNK] = np.where(
+            nv >= nl,
+            np.where(ve >= 0, ROOF, FLOOR),
+            np.where(la >= 0, LEFT_WALL, RIGHT_WALL),
+        )
     return labels
 
 
