@@ -224,3 +224,16 @@ def test_surface_labels_are_the_same_a_chunk_at_a_time(monkeypatch) -> None:
     monkeypatch.setattr(sections, "_CHUNK", 777)
     np.testing.assert_array_equal(sections.surface_labels(s, lat, ver, step=1.0), whole)
     assert set(np.unique(whole)) == {0, 1, 2, 3}
+
+
+def test_surface_labels_with_a_stray_chainage_far_off() -> None:
+    """A point projected kilometres beyond the rest gets its own bin (the whole cloud's
+    extents), the others keep their labels."""
+    from tunneldef.deformation import sections
+
+    rng = np.random.default_rng(5)
+    n = 5_000
+    s, lat, ver = rng.uniform(0.0, 20.0, n), rng.normal(0.0, 2.0, n), rng.normal(0.0, 1.5, n)
+    far = sections.surface_labels(np.r_[s, 5.0e7], np.r_[lat, 1.0], np.r_[ver, 0.0], step=0.1)
+    np.testing.assert_array_equal(far[:n], sections.surface_labels(s, lat, ver, step=0.1))
+    assert far[n] == sections.LEFT_WALL

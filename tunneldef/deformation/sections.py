@@ -98,6 +98,8 @@ def surface_labels(
     # per bin, not per point: a large survey's labels need no (N, 4) array of extents
     b = np.floor(s / step).astype(np.int64)
     b -= b.min()
+    if b.max() > n + 1_000_000:  # stray chainages far off: the occupied bins, in their order
+        b = np.unique(b, return_inverse=True)[1].reshape(-1)
     order = np.argsort(b, kind="stable")
     counts = np.bincount(b)
     ends = np.cumsum(counts)
