@@ -282,11 +282,6 @@ def tiled_deformation(
     ref_s = project_chunked(centerline, ref_xyz)[0]
     if (chainage is None) != (surface is None):
         raise ValueError("give both the chainage and the surface labels, or neither")
-    if chainage is None:
-        chainage, lat, ver, _ = project_chunked(centerline, cmp_xyz, full=True)
-        surface = surface_labels(chainage, lat, ver, step=settings.section_step)
-        del lat, ver
-    cmp_s = chainage
     from .deformation.compute import _coverage
 
     coverage = _coverage(ref_xyz, centerline, -1, ref_s)
@@ -304,6 +299,11 @@ def tiled_deformation(
         return compute_deformation(ref_xyz, cmp_xyz, centerline, settings=settings,
                                    coverage=coverage, registration_sigma=registration_sigma,
                                    progress=under(progress, "deformation"))
+    if chainage is None:  # (not needed when one tile holds the survey)
+        chainage, lat, ver, _ = project_chunked(centerline, cmp_xyz, full=True)
+        surface = surface_labels(chainage, lat, ver, step=settings.section_step)
+        del lat, ver
+    cmp_s = chainage
     base = Path(workdir) if workdir is not None else None
     tmp = Path(tempfile.mkdtemp(prefix="tunneldef-tiles-", dir=base))
     try:
