@@ -368,9 +368,10 @@ def network_registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                      "drifts"),
         _check("registration.translation_residual", rem, qc.max_axial_residual, "<=", "m",
                "an independent point-to-plane fit finds the compared network off its "
-               "registered position; the registration did not converge",
+               "registered position; " + _weak_advice(check),
                "length of the translation a robust point-to-plane fit still finds "
-               f"({', '.join(f'{1000 * v:+.1f}' for v in check.remaining)} mm)"),
+               f"({', '.join(f'{1000 * v:+.1f}' for v in check.remaining)} mm); "
+               + _weak_text(check)),
         _check("registration.translation_convergence", check.spread, qc.max_axial_spread,
                "<=", "m",
                "started 2 cm off along x or y, the point-to-plane fit ends elsewhere: the "
@@ -388,6 +389,34 @@ def network_registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
                "inside a drift the reference scanned but off its surfaces, after ICP from "
                "each; with no other pose left, the chosen evidence + 1)"),
     ]
+
+
+#: below this share of the point-to-plane information, a direction counts as weakly held
+#: (a network whose cross-cuts both epochs walk held 19 % along its main drift; a plain
+#: drift with a bend and no common junction 2.7 %, about what the normals' noise gives)
+_WEAK_SHARE = 0.05
+
+
+def _weak_text(check: Any) -> str:
+    w = np.asarray(getattr(check, "weak_direction", np.full(3, np.nan)), dtype=np.float64)
+    share = float(getattr(check, "weak_share", np.nan))
+    if not (np.all(np.isfinite(w)) and np.isfinite(share)):
+        return "the fit's weakest direction unknown"
+    along = 1000 * float(np.asarray(check.remaining, dtype=np.float64) @ w)
+    return (f"the surfaces hold the position least along ({w[0]:+.2f}, {w[1]:+.2f}, "
+            f"{w[2]:+.2f}), {100 * share:.1f} % of the fit's information, where it reads "
+            f"{along:+.1f} mm")
+
+
+def _weak_advice(check: Any) -> str:
+    share = float(getattr(check, "weak_share", np.nan))
+    if np.isfinite(share) and share < _WEAK_SHARE:
+        w = np.asarray(check.weak_direction, dtype=np.float64)
+        return (f"the surfaces barely fix the position along ({w[0]:+.2f}, {w[1]:+.2f}, "
+                f"{w[2]:+.2f}) ({100 * share:.1f} % of the fit's information, much of it the "
+                "normals' own noise): the epochs share no junction or corner that would; "
+                "survey a cross-cut both walk, or denser and less noisy scans")
+    return "the registration did not converge"
 
 
 def edge_difference_checks(differences: dict[int, float], qc: QualityConfig) -> list[Check]:
