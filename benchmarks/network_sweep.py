@@ -435,6 +435,9 @@ def run_case(case: NetCase, config: Config | None = None) -> NetCase:
         case.outcome, case.reason = "CRASH", f"{type(exc).__name__}: {exc}"
     else:
         case.seconds = time.perf_counter() - t0
+        check = getattr(result, "registration_check", None)
+        if check is not None and hasattr(check, "weak_share"):
+            case.info["weak_share"] = float(check.weak_share)
         if result.quality is not None:
             case.info["quality"] = result.quality.to_dict()
             if not result.quality.verified:
@@ -482,6 +485,7 @@ def _record(c: NetCase) -> dict[str, Any]:
         "wrong_branch": c.wrong_branch,
         "centre_p95": num(c.centre_p95),
         "centre_p95_per_edge": c.info.get("centre_p95_per_edge", {}),
+        "weak_share": num(c.info.get("weak_share", np.nan)),
         "seconds": c.seconds, "points": c.points,
         "checks": {k["check"]: k["figure"] for k in checks},
         "failed": [k["check"] for k in checks if k["verdict"] == "fail"],
