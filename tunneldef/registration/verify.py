@@ -613,9 +613,10 @@ class NetworkCheck:
         the smallest eigenvalue of its point-to-plane normal matrix at the registered pose).
     weak_share : float
         That eigenvalue's share of the matrix's trace: 1/3 when walls face every way, near 0
-        along a plain drift. The normals' own noise gives every direction a floor (a 6 m arch
-        at +-2.5 cm and 180 points/m^2 held 2.4 % along its drift, nearly all of it noise),
-        so a small share says the position there rests on little but that noise.
+        along a plain drift. The normals' own tilt noise gives every direction a floor (a 6 m
+        arch with a gentle bend at +-2.5 cm and 180 points/m^2 held 2.7 % along its drift,
+        about 1.4 % with normals over 0.3 m), so a small share says the position there rests
+        on little but that noise.
     """
 
     cross_residual: float
