@@ -397,25 +397,28 @@ def network_registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
 _WEAK_SHARE = 0.05
 
 
+def _direction(w: np.ndarray) -> str:
+    return f"({w[0]:+.2f}, {w[1]:+.2f}, {w[2]:+.2f})"
+
+
 def _weak_text(check: Any) -> str:
-    w = np.asarray(getattr(check, "weak_direction", np.full(3, np.nan)), dtype=np.float64)
-    share = float(getattr(check, "weak_share", np.nan))
+    w = np.asarray(check.weak_direction, dtype=np.float64)
+    share = float(check.weak_share)
     if not (np.all(np.isfinite(w)) and np.isfinite(share)):
         return "the fit's weakest direction unknown"
     along = 1000 * float(np.asarray(check.remaining, dtype=np.float64) @ w)
-    return (f"the surfaces hold the position least along ({w[0]:+.2f}, {w[1]:+.2f}, "
-            f"{w[2]:+.2f}), {100 * share:.1f} % of the fit's information, where it reads "
-            f"{along:+.1f} mm")
+    return (f"the surfaces hold the position least along {_direction(w)}, "
+            f"{100 * share:.1f} % of the fit's information, where it reads {along:+.1f} mm")
 
 
 def _weak_advice(check: Any) -> str:
-    share = float(getattr(check, "weak_share", np.nan))
+    share = float(check.weak_share)
     if np.isfinite(share) and share < _WEAK_SHARE:
-        w = np.asarray(check.weak_direction, dtype=np.float64)
-        return (f"the surfaces barely fix the position along ({w[0]:+.2f}, {w[1]:+.2f}, "
-                f"{w[2]:+.2f}) ({100 * share:.1f} % of the fit's information, much of it the "
-                "normals' own noise): the epochs share no junction or corner that would; "
-                "survey a cross-cut both walk, or denser and less noisy scans")
+        return (f"the surfaces barely fix the position along "
+                f"{_direction(np.asarray(check.weak_direction, dtype=np.float64))} "
+                f"({100 * share:.1f} % of the fit's information, much of it the normals' "
+                "own noise): the epochs share no junction or corner that would; survey a "
+                "cross-cut both walk, or denser and less noisy scans")
     return "the registration did not converge"
 
 
