@@ -571,7 +571,9 @@ def plausible_length(xyz: np.ndarray) -> float:
     asked to sample (time and memory grow with the length, not with the data).
     """
     pts = np.asarray(xyz, dtype=np.float64)
-    cells = np.unique(np.floor((pts[:, :2] - pts[:, :2].min(axis=0)) / _PLAN_CELL), axis=0)
+    ij = np.floor((pts[:, :2] - pts[:, :2].min(axis=0)) / _PLAN_CELL).astype(np.int64)
+    # one integer key per occupied cell: a 1-D unique sorts ~20x faster than rows
+    cells = np.unique(ij[:, 0] * (int(ij[:, 1].max(initial=0)) + 1) + ij[:, 1])
     area = len(cells) * _PLAN_CELL**2
     diagonal = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
     return max(area / _MIN_DRIFT_WIDTH, diagonal)

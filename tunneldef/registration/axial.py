@@ -332,6 +332,7 @@ def fine_shift(
     tree = tree if tree is not None else cKDTree(ref_xyz)
     reach = 1.5 * max(kernels) + _SlidingNearest.MARGIN
     nearest = _SlidingNearest(tree, ref_xyz, cmp_xyz, tangents, reach)
+    ref_pn = np.hstack([ref_xyz, ref_normals]).astype(np.float64, copy=False)
     delta = 0.0
     scale = 0.0  # noise_kernel of the residuals, once the widest kernel settled
     for stage, kernel in enumerate(kernels):
@@ -340,14 +341,15 @@ def fine_shift(
             reach = 1.5 * kernel + _SlidingNearest.MARGIN
             nearest = _SlidingNearest(tree, ref_xyz, cmp_xyz, tangents, reach, delta)
         for _ in range(iterations):
-            p = cmp_xyz + delta * tangents
             d, j = nearest.query(delta, 1.5 * kernel)
             ok = np.isfinite(d)
             if ok.sum() < 20:
                 return AxialShift(0.0, float("inf"), False, 0)
-            n = ref_normals[j[ok]]
-            r = np.einsum("ij,ij->i", n, p[ok] - ref_xyz[j[ok]])
-            a = np.einsum("ij,ij->i", n, tangents[ok])
+            matched = ref_pn[j[ok]]  # one gather of point and normal
+            n = matched[:, 3:]
+            t_ok = tangents[ok]
+            r = np.einsum("ij,ij->i", n, cmp_xyz[ok] + delta * t_ok - matched[:, :3])
+            a = np.einsum("ij,ij->i", n, t_ok)
             w = np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
             info = float(np.sum(w * a * a))
             if info <= 1e-9:
