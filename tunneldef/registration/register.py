@@ -129,6 +129,7 @@ def register(
     cmp_xyz = check_points(cmp_xyz, name="compared points", min_points=100)
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
+    notify(progress, "registration", 0.0)  # its stage time starts here, not at the first view
 
     try:
         ref_frame = principal_frame(ref_xyz, vertical=rc.coarse_vertical)
