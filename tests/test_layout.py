@@ -55,3 +55,22 @@ def test_main_verbs_are_exported() -> None:
         assert callable(getattr(tunneldef, name)), name
     with pytest.raises(AttributeError):
         tunneldef.no_such_verb  # noqa: B018
+
+
+def test_long_modules_say_why_they_are_one_idea() -> None:
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    files = [p for d in ("tunneldef", "plugin", "cloudcompare_scripts")
+             for p in (root / d).rglob("*.py")]
+    assert len(files) > 20
+    missing = []
+    for path in files:
+        text = path.read_text(encoding="utf-8")
+        if text.count("\n") <= 400:
+            continue
+        doc = " ".join((ast.get_docstring(ast.parse(text)) or "").split())
+        if "One idea at this length:" not in doc:
+            missing.append(str(path.relative_to(root)))
+    assert not missing, f"over 400 lines without saying why they are one idea: {missing}"

@@ -7,6 +7,9 @@ pipeline unpacks the section a stage needs. Defaults that come from the paper (S
 
 Load a partial TOML file with :func:`load_config` (unknown keys are an error); every key that is
 absent keeps its default.
+
+One idea at this length: the whole parameter tree, so that one file shows every default and its
+source; each section is short.
 """
 
 from __future__ import annotations

@@ -7,6 +7,9 @@ figures into :class:`Check` rows against the limits of :class:`~tunneldef.config
 :func:`tunneldef.pipeline.detect` collects them in a :class:`QualityReport`, stops on the first
 failure with a :class:`QualityError` (one line: what failed, by how much, what to try) unless
 the checks are not enforced, and then marks every output "unverified".
+
+One idea at this length: the check rows of every stage, which share one type, one report and one way
+of wording a refusal.
 """
 
 from __future__ import annotations

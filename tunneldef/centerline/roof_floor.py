@@ -12,6 +12,9 @@ floor points, ~1 cm in a 2 m drift).
 
 :func:`estimate_roll` measures the cross-slope shared by floors and roofs (a scan rolled about
 the tunnel axis), which the caller removes before looking for level lines.
+
+One idea at this length: everything read from the heights of a slice (the density peaks, the crown,
+the cross slopes and the section's roll), which share the 1-D kernel density.
 """
 
 from __future__ import annotations

@@ -15,6 +15,9 @@ Steps of :func:`skeleton_graph`, on a :class:`~tunneldef.centerline.plan.PlanGri
 
 :func:`plan_topology` is the same look at an epoch in a fraction of a second per million
 points, for a single-tube run to ask first whether its epochs are one drift at all.
+
+One idea at this length: one algorithm, the plan skeleton and its simplification into a graph, whose
+three steps share the pixel graph.
 """
 
 from __future__ import annotations

@@ -30,6 +30,9 @@ Steps of :func:`register_networks`:
 
 The common length per reference edge is the length of 1 m bins along that edge where both
 epochs have points after registration.
+
+One idea at this length: one algorithm, the registration of two networks, whose steps hand
+hypotheses from one to the next.
 """
 
 from __future__ import annotations
