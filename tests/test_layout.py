@@ -74,3 +74,16 @@ def test_long_modules_say_why_they_are_one_idea() -> None:
         if "One idea at this length:" not in doc:
             missing.append(str(path.relative_to(root)))
     assert not missing, f"over 400 lines without saying why they are one idea: {missing}"
+
+
+def test_the_readme_layout_names_every_module() -> None:
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    layout = readme.split("## Layout", 1)[1].split("\n## ", 1)[0]
+    names = {p.name for d in ("tunneldef", "plugin", "cloudcompare_scripts")
+             for p in (root / d).rglob("*.py")} - {"__init__.py", "__main__.py"}
+    assert len(names) > 40
+    missing = sorted(n for n in names if n not in layout)
+    assert not missing, f"README's Layout does not name {missing}"
