@@ -1,7 +1,8 @@
 """Every parameter of the pipeline, in one tree of frozen dataclasses.
 
-Each stage has its own section; the library functions take plain keyword arguments and the
-pipeline unpacks the section a stage needs. Defaults that come from the paper (Sensors 2024, 24,
+Each stage has its own section; a library function takes only its own sections (frozen,
+typed, checked when built) as keyword arguments, never the whole tree, and the pipeline hands
+each stage the sections it needs. Defaults that come from the paper (Sensors 2024, 24,
 2299, doi:10.3390/s24072299) cite it in the field's ``source`` metadata, which
 ``tunneldef config --dump`` prints beside each value.
 
