@@ -8,9 +8,6 @@ CloudCompare plugin, scripts) convert their inputs to :class:`~tunneldef.cloud.C
 
 One idea at this length: the chaining of the stages for single drifts and for networks, with
 the checks and the result objects they return.
-
-One idea at this length: the order of the stages and the checks between them, for a drift and for a
-network; the stages themselves live in their packages.
 """
 
 from __future__ import annotations

@@ -37,10 +37,6 @@ the data cannot have.
 
 One idea at this length: stage 1's passes and the per-pass quality that decides which pass is
 kept; slicing, the section lines and the fit live in their own modules.
-
-One idea at this length: the single-drift extractor (slices, their records and rejections, the two
-passes, the NURBS fit and the figures that judge each pass), whose steps share the slice records and
-are read top to bottom.
 """
 
 from __future__ import annotations

@@ -22,9 +22,6 @@ Steps of :func:`extract_network`:
 
 One idea at this length: the per-edge centreline passes of a drift network, with junction zones
 flagged and bridged.
-
-One idea at this length: the network extractor (edges from the plan skeleton, their slices, junction
-and corner zones, the per-edge fits and where the edges meet), one pass over the graph.
 """
 
 from __future__ import annotations

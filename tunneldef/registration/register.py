@@ -10,9 +10,6 @@ coarse PCA alignment with its direction ambiguity resolved.
 One idea at this length: the stage's driver, its steps (candidates, common stretch, shell
 refinement) and the overlap checks all decide one transform; the views, the along-axis shift
 and the refinement live in their own modules.
-
-One idea at this length: the drift registration's driver (direction candidates, the common-stretch
-pass, the shell refinement, the overlap checks); the views and baselines live in their modules.
 """
 
 from __future__ import annotations

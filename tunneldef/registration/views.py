@@ -20,9 +20,6 @@ reference centroid (survey coordinates never enter the numerics):
 
 One idea at this length: the paper's three views (cross-section, longitudinal, plan) applied in
 turn, with the floor planes and the along-axis slide they need.
-
-One idea at this length: the paper's three views and the along-axis correction they share, one
-alignment of a drift.
 """
 
 from __future__ import annotations

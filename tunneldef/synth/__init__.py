@@ -35,9 +35,6 @@ chains them and holds the truth records.
 
 One idea at this length: the public face of the generator (pair, tunnel, truth, writing) that
 the tests, the demo and the benchmarks use.
-
-One idea at this length: the single-drift pair and its truth records, which every test and benchmark
-builds on.
 """
 
 from __future__ import annotations

@@ -3,9 +3,6 @@ cross-section outlines and the deformation patches on them.
 
 One idea at this length: the specifications of a synthetic pair and the section outlines they
 are drawn on, validated in one place.
-
-One idea at this length: the design of a synthetic tunnel (specifications, outlines and patches),
-which the sampler reads as one.
 """
 
 from __future__ import annotations

@@ -25,9 +25,6 @@ section centre; displacement sign negative = the shell moved into the tunnel; no
 
 One idea at this length: synthetic drift networks and their per-branch truth (geometry,
 coverage, SLAM drift, strays); it reuses the single-tube sampler.
-
-One idea at this length: a synthetic network pair (its specification, the branches' geometry, the
-walkers' coverage, the sampler and the truth per branch), which share the branch records.
 """
 
 from __future__ import annotations
