@@ -279,8 +279,10 @@ def _centerline_network(cloud: Any, config: Any, out: Path, progress: Any) -> in
     for e in net.edges:
         log.info("edge %d: %.2f m, %d slices (%d usable), junctions %s", e.id, e.length,
                  len(e.slices), sum(r.ok for r in e.slices), [n for n in e.nodes if n >= 0])
-    log.info("network: %d edges, %d junctions, %.1f m -> %s", len(net.edges),
-             len(net.junctions), net.length, out)
+    corners = len(net.meta.get("corners", []))
+    log.info("network: %d edges, %d junctions%s, %.1f m -> %s", len(net.edges),
+             len(net.junctions), f" ({corners} of them corners)" if corners else "",
+             net.length, out)
     return 0
 
 

@@ -154,7 +154,9 @@ class CenterlineNetwork:
         ``edges[i].id == i``.
     junctions : tuple of Junction
     meta : dict
-        How it was made (grid, timings, parameters), JSON-serialisable.
+        How it was made (grid, timings, parameters), JSON-serialisable; ``meta["corners"]``
+        lists the junctions that are corners (two drifts meeting at an angle, where a walker
+        turned from one into the other).
     """
 
     edges: tuple[NetworkEdge, ...]
@@ -265,21 +267,23 @@ class CenterlineNetwork:
 
         The remaining edges are renumbered in order (``edges[i].id == i`` again); a junction
         keeps its remaining members and is dropped when fewer than three branch ends meet
-        there (an edge passing through counts twice): the mouth of a left-out stub on a main
-        drift is no junction, though the main drift keeps its junction zone there (its
-        section has a hole in the wall). ``meta["left_out"]`` lists what was left out and
+        there (an edge passing through counts twice), or, at a corner, when one of its two
+        drifts is left out: the mouth of a left-out stub on a main drift is no junction,
+        though the main drift keeps its junction zone there (its section has a hole in the
+        wall). ``meta["left_out"]`` lists what was left out and
         why.
         """
         if not reasons:
             return self
         keep = [e for e in self.edges if e.id not in reasons]
         new_id = {e.id: i for i, e in enumerate(keep)}
+        corners = set(self.meta.get("corners", []))
         junctions, new_j = [], {}
         for j in self.junctions:
             members = [(new_id[k], s) for k, s in zip(j.edges, j.chainages, strict=True)
                        if k in new_id]
             ends = sum(1 if min(s, keep[k].length - s) <= END_REACH else 2 for k, s in members)
-            if ends >= 3:
+            if ends >= 3 or (j.id in corners and len(members) == 2):
                 new_j[j.id] = len(junctions)
                 junctions.append(Junction(len(junctions), j.position,
                                           tuple(k for k, _ in members),
@@ -294,7 +298,10 @@ class CenterlineNetwork:
         left = list(self.meta.get("left_out", []))
         left += [{"edge": self.edges[k].name, "length_m": self.edges[k].length, "reason": r}
                  for k, r in sorted(reasons.items())]
-        return CenterlineNetwork(edges, tuple(junctions), {**self.meta, "left_out": left})
+        meta = {**self.meta, "left_out": left}
+        if "corners" in meta:
+            meta["corners"] = sorted(new_j[v] for v in corners if v in new_j)
+        return CenterlineNetwork(edges, tuple(junctions), meta)
 
     def to_dict(self, *, curves: bool = True) -> dict[str, Any]:
         """JSON-serialisable form: nodes (junctions) and edges."""

@@ -69,6 +69,10 @@ EXTENT_WALLS = "section_extent"
 _FORK_DEG = 15.0
 #: Fewest good slices for an edge; fewer than ``min_slices`` of them give a straight line.
 MIN_LINE_SLICES = 3
+#: A corner splits its edge into two edges meeting at a node when each leg keeps at least
+#: this much outside every zone (a line needs a few sections), metres; otherwise it stays a
+#: zone that one curve bridges.
+SPLIT_LEG = 4.0
 
 
 @dataclass
@@ -154,6 +158,96 @@ def _with_corners(
         at = float(curve.project(xyz[None]).chainage[0])
         out.append((at - half, at + half))
     return out
+
+
+def _outside(a: float, b: float, zones: list[tuple[float, float]], step: float = 0.1) -> float:
+    """Length of the chainage interval ``[a, b]`` outside every zone, metres."""
+    t = np.arange(a, b, step) + step / 2
+    inside = np.zeros(len(t), dtype=bool)
+    for lo, hi in zones:
+        inside |= (t >= lo) & (t <= hi)
+    return float((~inside).sum()) * step
+
+
+def _sub_axis(axis: Centerline, a: float, b: float) -> Centerline:
+    """The stretch ``[a, b]`` of ``axis`` as a curve of its own (chainage from ``a``)."""
+    s = np.linspace(a, b, max(int(np.ceil((b - a) / 0.1)) + 1, 2))
+    return Centerline.from_polyline(axis.point_at(s), step=0.1)
+
+
+def _split_at_corners(
+    edges: list[_Edge], members: dict[int, list[int]], node_xyz: dict[int, np.ndarray],
+    zones: list[list[tuple[float, float]]], pts: np.ndarray, grid: PlanGrid,
+) -> tuple[list[_Edge], dict[int, list[int]], set[int]]:
+    """Edges cut in two at their corners: each leg is a drift of its own (the main drift and
+    the cross-cut a walker turned into), its curve fitted to its own sections, and both end
+    at a new node where their end tangents meet (:func:`_place_nodes`). One stiff curve round
+    a right angle swings about 0.2 m off its drifts for some 6 m past the corner's zone. A
+    corner whose legs would keep less than :data:`SPLIT_LEG` outside every zone stays a zone
+    of one curve. Returns the edges (longest first), the junction members (the corners' nodes
+    among them) and the corners' node ids."""
+    corner_nodes: set[int] = set()
+    if not any(e.corners for e in edges):
+        return edges, members, corner_nodes
+    next_v = max([-1, *node_xyz, *(v for e in edges for v in e.nodes)]) + 1
+    legs: list[tuple[_Edge, int]] = []  # (leg, edge it came from)
+    for k, e in enumerate(edges):
+        cuts = sorted(((float(e.axis.project(xyz[None]).chainage[0]), xyz, h)
+                       for xyz, h in e.corners), key=lambda c: c[0])
+        blocked = list(zones[k]) + [(c - h, c + h) for c, _, h in cuts]
+        chosen: list[tuple[float, np.ndarray]] = []
+        start = 0.0
+        for c, xyz, _ in cuts:
+            if (_outside(start, c, blocked) >= SPLIT_LEG
+                    and _outside(c, e.axis.length, blocked) >= SPLIT_LEG):
+                chosen.append((c, xyz))
+                start = c
+        if not chosen:
+            legs.append((e, k))
+            continue
+        bounds = [0.0, *(c for c, _ in chosen), e.axis.length]
+        ids = [e.nodes[0], *range(next_v, next_v + len(chosen)), e.nodes[1]]
+        for (_, xyz), v in zip(chosen, ids[1:-1], strict=True):
+            node_xyz[v] = np.asarray(xyz, dtype=np.float64)
+            corner_nodes.add(v)
+            logger.info("a skeleton edge turns a corner at %s: cut into two drifts there",
+                        np.round(xyz, 1).tolist())
+        next_v += len(chosen)
+        for i in range(len(bounds) - 1):
+            a, b = bounds[i], bounds[i + 1]
+            axis = _sub_axis(e.axis, a, b)
+            cells = (axis.points[:, :2] - grid.origin) / grid.cell - 0.5
+            cells = np.clip(cells, 0, np.array(grid.footprint.shape) - 1)
+            half = path_half_width(grid, cells)
+            tube = 1.6 * half + 0.5
+            near = cKDTree(axis.points[:, :2]).query(pts[:, :2], distance_upper_bound=tube)[0]
+            through = [v for v in e.through
+                       if a <= float(e.axis.project(node_xyz[v][None]).chainage[0]) < b]
+            leg = _Edge(cells, [ids[i], ids[i + 1]], through, axis, half, tube,
+                        np.flatnonzero(np.isfinite(near)))
+            leg.corners = [(xyz, h) for c, xyz, h in cuts
+                           if a < c < b and all(abs(c - c2) > 1e-9 for c2, _ in chosen)]
+            legs.append((leg, k))
+    if not corner_nodes:
+        return edges, members, corner_nodes
+    order = sorted(range(len(legs)), key=lambda i: -legs[i][0].axis.length)  # stable
+    out = [legs[i][0] for i in order]
+    new_members: dict[int, list[int]] = {v: [] for v in corner_nodes}
+    for v, ks in members.items():
+        got = []
+        for k in ks:
+            mine = [n for n, i in enumerate(order) if legs[i][1] == k]
+            touch = [n for n in mine if v in out[n].nodes or v in out[n].through]
+            if not touch:  # the leg whose stretch holds the node
+                d = [float(out[n].axis.project(node_xyz[v][None]).distance[0]) for n in mine]
+                touch = [mine[int(np.argmin(d))]]
+            got += touch
+        new_members[v] = got
+    for n, e in enumerate(out):
+        for v in e.nodes:
+            if v in corner_nodes:
+                new_members[v].append(n)
+    return out, {v: sorted(set(ks)) for v, ks in new_members.items()}, corner_nodes
 
 
 def _axis_from_path(path: np.ndarray, grid: PlanGrid) -> Centerline:
@@ -456,13 +550,23 @@ def _passes(
 def _place_nodes(
     edges: list[_Edge], curves: list[Centerline], members: dict[int, list[int]],
     node_xyz: dict[int, np.ndarray], *, skip: dict[int, str] | None = None,
+    corners: set[int] | None = None,
 ) -> None:
     """Junction nodes on fitted curves: where the end tangent of an edge that ends there meets
-    the edge passing through (else the node's foot point on the first member). Edges in
-    ``skip`` (left out, no fitted curve) neither host nor place a node."""
+    the edge passing through (else the node's foot point on the first member); a corner's
+    node (``corners``) where its two legs' end tangents meet. Edges in ``skip`` (left out, no
+    fitted curve) neither host nor place a node."""
     skip = skip or {}
     for v, ks in members.items():
         ks = [k for k in ks if k not in skip] or ks
+        if v in (corners or set()) and len(ks) == 2:
+            a, b = ks
+            at = _tangents_meet(curves[a], edges[a].nodes.index(v),
+                                curves[b], edges[b].nodes.index(v))
+            reach = 2.0 * max(edges[a].half_width, edges[b].half_width)
+            if at is not None and np.linalg.norm(at[:2] - node_xyz[v][:2]) <= reach:
+                node_xyz[v] = at
+                continue
         through = [k for k in ks if v in edges[k].through]
         host = curves[through[0] if through else ks[0]]
         ending = [k for k in ks if v in edges[k].nodes and k not in through]
@@ -516,6 +620,30 @@ def _zones(
             half += margin
             zones[k].append((at[k] - half, at[k] + half))
     return zones
+
+
+def _tangents_meet(
+    a: Centerline, side_a: int, b: Centerline, side_b: int, min_sin: float = 0.3
+) -> np.ndarray | None:
+    """Where the end tangents of ``a`` and ``b`` (``side`` 0 start, 1 end) cross in plan, at
+    the mean of their heights there; None when they are within ``asin(min_sin)`` of
+    parallel (a corner's legs turn more than 45 degrees)."""
+    ends = []
+    for cv, side in ((a, side_a), (b, side_b)):
+        back = min(3.0, 0.5 * cv.length)  # the chord of the last metres, not the end's tangent
+        p, inner = cv.point_at([0.0, back] if side == 0 else [cv.length, cv.length - back])
+        t = p - inner  # pointing out of the curve
+        ends.append((p, t / max(float(np.linalg.norm(t)), 1e-12)))
+    (p, u), (q, w) = ends
+    m = np.array([[u[0], -w[0]], [u[1], -w[1]]])
+    det = float(np.linalg.det(m))
+    if abs(det) < min_sin * max(np.linalg.norm(u[:2]) * np.linalg.norm(w[:2]), 1e-12):
+        return None
+    lam, mu = np.linalg.solve(m, (q - p)[:2])
+    if lam < -1.0 or mu < -1.0:  # behind either end: no corner between them
+        return None
+    x, y = p[:2] + lam * u[:2]
+    return np.array([x, y, 0.5 * ((p + lam * u)[2] + (q + mu * w)[2])])
 
 
 def _meet(curve: Centerline, side: int, host: Centerline, near: np.ndarray) -> np.ndarray:
@@ -632,6 +760,11 @@ def extract_network(
         e.corners = [(xyz, h) for xyz, h in e.corners if not any(
             a - reach <= float(e.axis.project(xyz[None]).chainage[0]) <= b + reach
             for a, b in zones[k])]
+    # a corner with long legs either side cuts its edge in two at a node
+    edges, members, corner_nodes = _split_at_corners(edges, members, node_xyz, zones, pts, grid)
+    if corner_nodes:
+        zones = _zones(edges, node_xyz, [e.axis for e in edges], members, nc.zone_margin)
+    for e in edges:
         for xyz, h in e.corners:
             logger.info("a skeleton edge turns a corner at %s: sections within %.1f m of it "
                         "are flagged as a junction zone", np.round(xyz, 1).tolist(), h)
@@ -652,7 +785,7 @@ def extract_network(
         except (NetworkError, NotATunnelError) as exc:
             _leave_out(failed, k, e, members, names[k], exc)
             first.append(e.axis)
-    _place_nodes(edges, first, members, node_xyz, skip=failed)
+    _place_nodes(edges, first, members, node_xyz, skip=failed, corners=corner_nodes)
     zones = _zones(edges, node_xyz, first, members, nc.zone_margin)
     # round 2: the paper's passes along those curves, junction zones at the placed nodes
     for k, e in enumerate(edges):
@@ -667,7 +800,8 @@ def extract_network(
             except (NetworkError, NotATunnelError) as exc:
                 _leave_out(failed, k, e, members, names[k], exc)
         e.curve, e.records = first[k], []
-    _place_nodes(edges, [e.curve for e in edges], members, node_xyz, skip=failed)
+    _place_nodes(edges, [e.curve for e in edges], members, node_xyz, skip=failed,
+                 corners=corner_nodes)
     # extend edges that end at a junction to its node
     final: list[Centerline] = []
     for e in edges:
@@ -709,6 +843,7 @@ def extract_network(
         "grid_shape": list(grid.footprint.shape),
         "height_m": grid.height,
         "stray_points": int((~grid.keep).sum()),
+        "corners": sorted(jid[v] for v in corner_nodes),
         "timings_s": {"graph": t_graph, "total": time.perf_counter() - t0},
     }
     notify(progress, "network centrelines", 1.0)
