@@ -508,6 +508,41 @@ def test_a_walk_round_a_corner_is_cut_into_its_two_drifts() -> None:
     assert kept.junctions == () and kept.meta["corners"] == []
 
 
+def test_a_corner_in_one_epoch_registers_onto_a_junction_in_the_other() -> None:
+    """The reference walker turns the corner into the cross-cut; the compared one walks on
+    down the main drift too (a T junction there). The corner's node and the junction pair up,
+    and a sag in the cross-cut is read on its own branch."""
+    from tunneldef.pipeline import detect_network
+    from tunneldef.synth import DeformationSpec
+    from tunneldef.synth.network import BranchDeformation, NetworkPairSpec, Stretch
+    from tunneldef.transforms import apply_transform
+
+    edges = (
+        EdgeSpec("main", ((0.0, 0.0, 0.0), (45.0, 0.0, 0.0)), SectionSpec("rectangle", 4.5, 3.0)),
+        EdgeSpec("xc", ((30.0, 0.0, 0.0), (30.0, -22.0, 0.0)), SectionSpec("arch", 4.0, 3.0)),
+    )
+    net = NetworkSpec(edges, (JunctionSpec("j", (30.0, 0.0, 0.0), (0, 1)),))
+    defs = (BranchDeformation(1, DeformationSpec("roof_sag", 14.0, 2.0, 1.0, 0.03)),)
+    spec = NetworkPairSpec(net, ref_coverage=(Stretch(0, 0.0, 33.0), Stretch(1, 0.0, 22.0)),
+                           cmp_coverage=(Stretch(0, 0.0, 45.0), Stretch(1, 0.0, 22.0)),
+                           density=150.0, noise_sigma=0.015, drift=0.0, seed=3,
+                           deformations=defs, yaw_deg=60.0)
+    p = make_network_pair(spec)
+    r = detect_network(p.ref, p.cmp)
+    assert r.ref_network.meta["corners"] == [0] and len(r.ref_network.edges) == 2
+    err = np.linalg.norm(apply_transform(r.transform, p.cmp.xyz)
+                         - apply_transform(p.truth.transform, p.cmp.xyz), axis=1)
+    assert np.mean(err) < 0.003
+    d = r.cloud.fields["deformation"]
+    core = (p.truth.cmp.branch == 1) & (p.truth.cmp.displacement < -0.024) & np.isfinite(d)
+    assert core.sum() > 10
+    assert len(np.unique(r.cloud.fields["branch"][core])) == 1
+    assert np.median(d[core]) == pytest.approx(np.median(p.truth.cmp.displacement[core]),
+                                               abs=0.008)
+    stable = (np.abs(p.truth.cmp.displacement) < 1e-4) & np.isfinite(d)
+    assert np.mean(np.abs(d[stable]) > 0.01) < 0.005
+
+
 def test_the_mouths_of_a_crossing_nobody_walked_into_do_not_pull_the_curve() -> None:
     """The walker passes an oblique crossing without looking in: both walls of the main drift
     have a hole there, and those slices' walls come from the section's extent, 3-5 cm off.
