@@ -464,14 +464,17 @@ def verify_registration(
     # slide then moved by centimetres with the rounding of the input coordinates
     slide_points = max(60_000, min(len(cmp), int(points_per_metre * length)))
     ref_n = normals(ref, _NORMAL_RADIUS)
-    _, fine = axial_correction(ref, ref_n, cmp, cl, slide_points)
+    # every slide below runs on the same reference points, most on the same compared ones
+    same = {"tree": cKDTree(ref), "chainage": cl.project(cmp).chainage}
+    _, fine = axial_correction(ref, ref_n, cmp, cl, slide_points, **same)
     # started 2 cm either side of the registered position, the same slide must end where it
     # ends from there: a sparse, noisy rough-rock pair registered 11.9 mm off read a remaining
     # slide of 0.3 mm, and ended at -10.8 and +12.5 mm from starts 2 cm off (it had stuck)
-    tan = cl.frame_at(cl.project(cmp).chainage)[0]
+    tan = cl.frame_at(same["chainage"])[0]
     probes = []
     for side in (-1.0, 1.0):
-        _, p = axial_correction(ref, ref_n, cmp + side * _PROBE * tan, cl, slide_points)
+        _, p = axial_correction(ref, ref_n, cmp + side * _PROBE * tan, cl, slide_points,
+                                tree=same["tree"])
         probes.append(side * _PROBE + p.shift if p.informative else np.nan)
     # nothing to judge when the slide itself found no surface across the axis; a start 2 cm
     # off that finds none is as bad as one that sticks
@@ -482,11 +485,11 @@ def verify_registration(
     # the same answer at both scales, relief drowned in noise does not (a 2.8 m drift with
     # 1.9 cm relief under 2.9 cm noise: 0 vs 8.7 cm, where the registration was 7.5 cm off)
     wide_n = normals(ref, 2 * _NORMAL_RADIUS)
-    _, wide = axial_correction(ref, wide_n, cmp, cl, slide_points)
+    _, wide = axial_correction(ref, wide_n, cmp, cl, slide_points, **same)
     # and both with the kernel narrowing to 5 cm whatever the noise: the noise-wide kernel is
     # the unbiased one under heavy noise (+-29 mm: 11 mm off with the narrow one), but on
     # relief alone the narrow one saw a 13.8 mm misplacement the wide one read as 7 mm
-    narrow = [axial_correction(ref, n, cmp, cl, slide_points, noise_floor=False)[1]
+    narrow = [axial_correction(ref, n, cmp, cl, slide_points, noise_floor=False, **same)[1]
               for n in (ref_n, wide_n)]
     scales = (
         abs(fine.shift - wide.shift) / float(np.hypot(fine.uncertainty, wide.uncertainty))

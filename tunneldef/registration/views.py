@@ -516,20 +516,26 @@ def axial_correction(
     ref_cl: Centerline,
     max_points: int = _AXIAL_MAX_POINTS,
     noise_floor: bool = True,
+    *,
+    tree: cKDTree | None = None,
+    chainage: np.ndarray | None = None,
 ) -> tuple[np.ndarray, AxialShift]:
     """A last along-axis correction (4, 4) and its uncertainty, by the 1-DOF point-to-plane
     alignment of :func:`.axial.fine_shift` (compared points already in place; at most
-    ``max_points`` of them, at random, are used; ``noise_floor`` as there)."""
-    pm = ref_cl.project(cmp_xyz)
-    tan = ref_cl.frame_at(pm.chainage)[0]
-    sel = _axial_sample(pm.chainage, ref_cl.length, None, max_points)
+    ``max_points`` of them, at random, are used; ``noise_floor`` as there). ``tree`` (of
+    ``ref_xyz``) and ``chainage`` (of ``cmp_xyz`` on ``ref_cl``) spare repeated calls on the
+    same clouds building and projecting them again."""
+    s = ref_cl.project(cmp_xyz).chainage if chainage is None else chainage
+    tan = ref_cl.frame_at(s)[0]
+    sel = _axial_sample(s, ref_cl.length, None, max_points)
     shift = fine_shift(
         ref_xyz,
         ref_normals,
         cmp_xyz[sel],
         tan[sel],
-        blocks=np.floor(pm.chainage[sel]).astype(np.int64),
+        blocks=np.floor(s[sel]).astype(np.int64),
         noise_floor=noise_floor,
+        tree=tree,
     )
     t = tan[sel].mean(axis=0)
     m = _translation(shift.shift * t / np.linalg.norm(t))
