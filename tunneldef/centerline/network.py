@@ -626,8 +626,9 @@ def _tangents_meet(
     a: Centerline, side_a: int, b: Centerline, side_b: int, min_sin: float = 0.3
 ) -> np.ndarray | None:
     """Where the end tangents of ``a`` and ``b`` (``side`` 0 start, 1 end) cross in plan, at
-    the mean of their heights there; None when they are within ``asin(min_sin)`` of
-    parallel (a corner's legs turn more than 45 degrees)."""
+    the mean of their heights there (the tangents are the chords of the last 3 m); None when
+    they are within ``asin(min_sin)`` (17 degrees) of parallel, or cross more than a metre
+    behind either end."""
     ends = []
     for cv, side in ((a, side_a), (b, side_b)):
         back = min(3.0, 0.5 * cv.length)  # the chord of the last metres, not the end's tangent
