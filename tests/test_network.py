@@ -530,6 +530,7 @@ def test_a_corner_in_one_epoch_registers_onto_a_junction_in_the_other() -> None:
     p = make_network_pair(spec)
     r = detect_network(p.ref, p.cmp)
     assert r.ref_network.meta["corners"] == [0] and len(r.ref_network.edges) == 2
+    assert r.registration.junction_pairs == [(0, 0)]  # the corner's node on the T's junction
     err = np.linalg.norm(apply_transform(r.transform, p.cmp.xyz)
                          - apply_transform(p.truth.transform, p.cmp.xyz), axis=1)
     assert np.mean(err) < 0.003
