@@ -160,6 +160,13 @@ def _with_corners(
     return out
 
 
+def _tube(axis: Centerline, half_width: float, pts: np.ndarray) -> tuple[float, np.ndarray]:
+    """An edge's tube radius in plan (``1.6 hw + 0.5`` m) and the indices of ``pts`` in it."""
+    tube = 1.6 * half_width + 0.5
+    near = cKDTree(axis.points[:, :2]).query(pts[:, :2], distance_upper_bound=tube)[0]
+    return tube, np.flatnonzero(np.isfinite(near))
+
+
 def _outside(a: float, b: float, zones: list[tuple[float, float]], step: float = 0.1) -> float:
     """Length of the chainage interval ``[a, b]`` outside every zone, metres."""
     t = np.arange(a, b, step) + step / 2
@@ -219,12 +226,10 @@ def _split_at_corners(
             cells = (axis.points[:, :2] - grid.origin) / grid.cell - 0.5
             cells = np.clip(cells, 0, np.array(grid.footprint.shape) - 1)
             half = path_half_width(grid, cells)
-            tube = 1.6 * half + 0.5
-            near = cKDTree(axis.points[:, :2]).query(pts[:, :2], distance_upper_bound=tube)[0]
+            tube, index = _tube(axis, half, pts)
             through = [v for v in e.through
                        if a <= float(e.axis.project(node_xyz[v][None]).chainage[0]) < b]
-            leg = _Edge(cells, [ids[i], ids[i + 1]], through, axis, half, tube,
-                        np.flatnonzero(np.isfinite(near)))
+            leg = _Edge(cells, [ids[i], ids[i + 1]], through, axis, half, tube, index)
             leg.corners = [(xyz, h) for c, xyz, h in cuts
                            if a < c < b and all(abs(c - c2) > 1e-9 for c2, _ in chosen)]
             legs.append((leg, k))
@@ -742,10 +747,9 @@ def extract_network(
         axis = _axis_from_path(path, grid)
         if any(cut):  # straight on to where the skeleton ended
             axis = _extend(axis, -cut[0] * grid.cell, axis.length + cut[1] * grid.cell)[0]
-        tube = 1.6 * half + 0.5
-        near = cKDTree(axis.points[:, :2]).query(pts[:, :2], distance_upper_bound=tube)[0]
+        tube, index = _tube(axis, half, pts)
         edges.append(_Edge(e.path, list(e.nodes), list(getattr(e, "through", [])), axis, half,
-                           tube, np.flatnonzero(np.isfinite(near))))
+                           tube, index))
         edges[-1].corners = _corners(axis, half, nc.zone_margin)
     # node positions from the first axes (plan node, height of the first member's axis)
     node_xyz: dict[int, np.ndarray] = {}
