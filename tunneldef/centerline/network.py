@@ -837,9 +837,12 @@ def extract_network(
         cv.meta.update({"edge": k, "half_width_m": e.half_width})
         out_edges.append(NetworkEdge(k, f"edge-{k}", cv, zs,
                                      tuple(jid.get(v, -1) for v in e.nodes), e.records))
+    # each curve was extended to reach its nodes: a node's chainage lies on it (clipped, so
+    # rounding cannot put a node at an end a hair outside its own zone)
     junctions = tuple(
         Junction(jid[v], node_xyz[v], tuple(ks),
-                 tuple(float(final[k].project(node_xyz[v][None]).chainage[0]) for k in ks))
+                 tuple(float(np.clip(final[k].project(node_xyz[v][None]).chainage[0], 0.0,
+                                     final[k].length)) for k in ks))
         for v, ks in sorted(members.items())
     )
     meta = {
