@@ -14,7 +14,7 @@ from tunneldef.deformation.local_surface import (
     voxel_cores,
 )
 from tunneldef.errors import ConfigError, InvalidCloudError
-from tunneldef.synth import DeformationSpec, PairSpec, TunnelSpec, make_pair
+from tunneldef.synth import DeformationSpec, PairSpec, SectionSpec, TunnelSpec, make_pair
 
 LENGTH = 12.0
 SAG = 0.015  # the paper's Table 5 roof deformation, m
@@ -113,6 +113,39 @@ def test_sign_on_roof_walls_and_floor():
     assert np.median(r.normal[floor, 2]) < -0.99
 
 
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_bulge_wrapped_round_the_wall_floor_edge_reads_at_full_size(seed):
+    """A horseshoe's walls meet its floor within 0.15 m of mid-wall, so a wall bulge there
+    wraps round the edge. The cores within a normal radius of the edge straddle wall and floor
+    at that radius; they are fitted again on a smaller ball, and their points read the bulge
+    on their own cylinders rather than borrowing the value of cores 0.3 m or more away (which
+    read it at 72-80 % of its size, and a wider one at a third)."""
+    a = 0.04
+    spec = PairSpec(
+        tunnel=TunnelSpec(
+            length=LENGTH, noise_sigma=0.012, section=SectionSpec("horseshoe", 5.9, 3.1)
+        ),
+        deformations=(DeformationSpec(kind="wall_bulge", chainage=6.0, length=3.0, width=2.0,
+                                      amplitude=a),),
+        cmp_shift=0.0,
+        seed=seed,
+    )
+    pair = make_pair(spec)
+    tr = pair.truth
+    r = _run(pair)
+    assert r.meta["edge_cores"] > 100
+    shell = tr.label == 0
+    core = shell & (tr.displacement <= -0.8 * a)
+    assert core.sum() > 100 and np.isfinite(r.deformation[core]).all()
+    true = np.median(tr.displacement[core])
+    # ~170 points of ~8 cores, each with ~2 mm noise: within 15 % (6 mm) of the truth
+    assert np.median(r.deformation[core]) == pytest.approx(true, rel=0.15)
+    # and the unchanged shell stays quiet, its edges included
+    quiet = shell & (tr.displacement == 0.0) & (tr.chainage > 0.5) & (tr.chainage < LENGTH - 0.5)
+    d = np.abs(r.deformation[quiet])
+    assert np.mean(d[np.isfinite(d)] > 0.010) <= 0.005
+
 def test_lod_grows_with_noise():
     # the plain cylinder means (pooling, which lowers a sparse scan's LoD, is checked below)
     quiet_pair = _pair(noise=0.005, seed=5, length=5.0)
@@ -128,12 +161,20 @@ def test_lod_grows_with_noise():
     reg = _run(quiet_pair, registration_sigma=0.004)
     assert np.nanmedian(reg.lod95) == pytest.approx(lq + 1.96 * 0.004, abs=0.0005)
     # pooled, the noisy scan's LoD is lower and still honest: nothing moved, so about 5 % of
-    # the shell at most may exceed it
+    # the shell at most may exceed it. Neighbouring points share their cores' errors, so one
+    # 5 m pair is a small sample of the level (single seeds read 3.0-5.0 %, ten seeds 3.8 %):
+    # three pairs are judged together
     pooled = _run(noisy_pair)
     assert pooled.meta["pooled_cores"] > 0.5 * pooled.meta["cores"]
     assert 0.5 * ln < np.nanmedian(pooled.lod95) < 0.9 * ln
-    shell = (noisy_pair.truth.label == 0) & np.isfinite(pooled.deformation)
-    assert np.mean(pooled.significant[shell]) <= 0.05
+    beyond, total = 0, 0
+    for seed, res in ((5, pooled), (6, None), (7, None)):
+        pair = noisy_pair if res is not None else _pair(noise=0.03, seed=seed, length=5.0)
+        res = res if res is not None else _run(pair)
+        shell = (pair.truth.label == 0) & np.isfinite(res.deformation)
+        beyond += int(res.significant[shell].sum())
+        total += int(shell.sum())
+    assert beyond / total <= 0.05
 
 
 def _brute_core(ref, cmp_, res, q, *, ref_core, cmp_core, max_depth=0.3, radius_c=0.2):

@@ -4,6 +4,8 @@
   measured;
 * :func:`_voxel_normals`: the reference's plane normal and surface variation around each core,
   from per-voxel moments;
+* :func:`_ball_planes`: the same fit on the exact points of a small ball, for the cores next
+  to an edge of the section, where the wider fit straddles two surfaces;
 * :func:`_epoch_stats`: the clipped mean, spread and count of one epoch's points in each core's
   cylinder, projected on its normal; the neighbourhoods come from :class:`_RadiusIndex`
   (Open3D's fixed-radius hash grid) as flat arrays, and every statistic is a ``np.bincount``.
@@ -117,16 +119,18 @@ class _Epoch(_RadiusIndex):
 def _voxel_normals(
     ref: np.ndarray, cores: np.ndarray, spacing: float, radius: float,
     lo: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Plane normal and surface variation of the reference around each core.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plane normal, surface variation and thickness of the reference around each core.
 
     The reference points are summarised per voxel of edge ``spacing`` (count, first and second
     moments about the voxel centre, one ``np.bincount`` each); a core's neighbourhood is every
     voxel whose centre lies within ``radius + spacing / 2`` of it, and its covariance is the
     sum of those voxels' moments moved to the core. Returns the smallest-eigenvalue
-    eigenvectors (C, 3) (unoriented) and ``l0 / (l0 + l1 + l2)`` (C,) (about 0 on a plane, up
-    to 1/3 on a corner; ``inf`` with fewer than 3 points). ``lo`` is the corner of the voxel
-    grid (default: :func:`normal_grid_corner` of these points).
+    eigenvectors (C, 3) (unoriented), ``l0 / (l0 + l1 + l2)`` (C,) (about 0 on a plane, up
+    to 1/3 on a corner; ``inf`` with fewer than 3 points) and ``sqrt(l0)`` (C,), the points'
+    standard deviation across the plane (the noise on a plane, at any radius; ``inf`` with
+    fewer than 3 points). ``lo`` is the corner of the voxel grid (default:
+    :func:`normal_grid_corner` of these points).
     """
     if lo is None:
         lo = normal_grid_corner(ref, cores, spacing, radius)
@@ -177,7 +181,50 @@ def _voxel_normals(
     normals = np.ascontiguousarray(vecs[:, :, 0])
     variation = vals[:, 0] / np.maximum(vals.sum(axis=1), 1e-30)
     variation[few] = np.inf
-    return normals, variation
+    thickness = np.sqrt(np.maximum(vals[:, 0], 0.0))
+    thickness[few] = np.inf
+    return normals, variation, thickness
+
+
+def _ball_planes(
+    index: _RadiusIndex, cores: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Plane normal and thickness of the indexed points within ``radius`` of each core.
+
+    The exact-ball counterpart of :func:`_voxel_normals`, for few cores and a radius smaller
+    than a voxel (the voxel moments blur a neighbourhood by a voxel's size). Returns the
+    unoriented smallest-eigenvalue eigenvectors (C, 3) and ``sqrt(l0)`` (C,), the points'
+    standard deviation across the plane (``inf`` with fewer than 6 points).
+    """
+    nc = len(cores)
+    normals = np.zeros((nc, 3))
+    thickness = np.full(nc, np.inf)
+    if nc == 0 or index.empty:
+        return normals, thickness
+    for start in range(0, nc, _CHUNK):
+        sl = slice(start, min(start + _CHUNK, nc))
+        c = cores[sl]
+        group, idx, _ = index.ball(c, radius)
+        m = len(c)
+        rel = index.pts[idx].astype(np.float64) - c[group]
+        n = np.bincount(group, minlength=m).astype(np.float64)
+        safe = np.maximum(n, 1.0)
+        # (float: with no point in reach, np.bincount of empty weights returns integers)
+        mean = np.stack([np.bincount(group, rel[:, i], m) for i in range(3)], axis=1)
+        mean = mean / safe[:, None]
+        dev = rel - mean[group]
+        cov = np.empty((m, 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                cov[:, i, j] = cov[:, j, i] = np.bincount(group, dev[:, i] * dev[:, j], m) / safe
+        few = n < 6
+        cov[few] = np.eye(3)
+        vals, vecs = np.linalg.eigh(cov)
+        normals[sl] = vecs[:, :, 0]
+        th = np.sqrt(np.maximum(vals[:, 0], 0.0))
+        th[few] = np.inf
+        thickness[sl] = th
+    return normals, thickness
 
 
 def normal_grid_corner(

@@ -11,7 +11,11 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
    interpolates the smooth field between the overlapping cylinders.
 2. *Normal*: the reference points around a core (voxel moments of the reference within
    ``normal_radius``) are fitted by a plane (PCA, smallest eigenvector); the normal is oriented
-   outward, away from the centreline.
+   outward, away from the centreline. A core that straddles two surfaces at that radius
+   (surface variation above 0.02) is fitted again on the reference points within half of it;
+   where that plane is as thin as the planar cores around show the rock to be, the core lies
+   on one surface next to an edge (a wall's foot, a chamber's rim) and is measured as a
+   planar core, on its own cylinder (never widened: that would reach across the edge).
 3. *Cylinder means*: reference and compared points inside a cylinder of radius
    ``cylinder_radius`` along that normal are projected on the normal. Only points of the same
    surface count (their nearest core's normal within 35 degrees of this one). Each epoch's
@@ -63,7 +67,8 @@ surface lies in its cylinder within ``max_depth`` (the surface moved further tha
 ``max_depth``, the reference epoch did not see it, or the point is a stray return in
 mid-air). Where fewer than three reference points lie within ``normal_radius``, the normal
 falls back to the radial direction from the centreline. Corners: points whose core
-straddles two surfaces (surface variation above 0.02) take the value of the nearest planar
+straddles two surfaces (surface variation above 0.02) even on the smaller ball, or whose
+edge core's cylinder is rough, sparse or unsupported, take the value of the nearest planar
 core whose plane passes closest to them.
 
 Everything is vectorised: cylinder neighbourhoods come from Open3D's fixed-radius hash grid
@@ -85,6 +90,7 @@ support, pooling, level of detection) over one set of core points.
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -109,6 +115,7 @@ from .core_pooling import (
 )
 from .cylinders import (
     _CHUNK,
+    _ball_planes,
     _Epoch,
     _epoch_stats,
     _voxel_normals,
@@ -130,6 +137,9 @@ _SUPPORT_SHIFT = 0.25  # of the cylinder radius: largest distance between the ce
 _SUPPORT_MIN_POINTS = 5  # fewer points of an epoch in the (widened) cylinder: no value
 _NONPLANAR_FACTOR = 2.0  # a cylinder rougher than this many times the median one, and by
 _NONPLANAR_EXCESS = 0.010  # at least this much (m), after widening holds no single surface
+_EDGE_SCALE = 0.5  # of the normal radius: the ball that fits a core next to an edge again
+_EDGE_NEIGHBOURS = 8  # planar cores whose thickness gives the noise next to an edge,
+_EDGE_REACH = 1.0  # within this distance, m
 _ROUGH_FACTOR = 1.5  # a cylinder this much rougher than the median one is measured wider,
 _ROUGH_EXCESS = 0.005  # and by at least this much, m: with a low-noise scanner (2 mm) the
 # curvature of a 30 mm sag alone makes its cylinders 1.5 times rougher, and widening them
@@ -338,8 +348,15 @@ def robust_deformation(
     # pass 1: outward plane normal of the reference around each core (voxel moments)
     if normal_corner is None:
         normal_corner = normal_grid_corner(ref_use, cores, core_spacing, normal_radius)
-    normal, variation = _voxel_normals(
+    normal, variation, thickness = _voxel_normals(
         ref_use, cores, core_spacing, normal_radius, np.asarray(normal_corner, dtype=np.float64)
+    )
+    index_radius = float(np.hypot(cylinder_radius, min(max_depth, cylinder_radius)))
+    ref_epoch = _Epoch(ref_use, np.empty((0, 3), np.float32), index_radius)
+    # pass 1b: cores next to an edge of the section, planar on a smaller ball
+    variation_wide = variation.copy()
+    edge_ids = _edge_planes(
+        ref_epoch, cores, normal, variation, thickness, _EDGE_SCALE * normal_radius, workers
     )
     radial = _outward(line, cores, workers)
     flat = ~np.isfinite(variation)
@@ -353,8 +370,7 @@ def robust_deformation(
     if measure is not None:
         _, cmp_core = core_tree.query(cmp_use, workers=workers)
     n32 = normal.astype(np.float32)
-    index_radius = float(np.hypot(cylinder_radius, min(max_depth, cylinder_radius)))
-    ref_epoch = _Epoch(ref_use, n32[near], index_radius)
+    ref_epoch.normals = np.ascontiguousarray(n32[near])
     cmp_epoch = _Epoch(cmp_use, n32[cmp_core], index_radius)
     del near
 
@@ -398,6 +414,9 @@ def robust_deformation(
     weak &= (out["nr"] > 0) & (out["nc"] > 0)
     n_sparse = int(weak.sum())
     typicals = {}
+    edge = np.zeros(n_cores, dtype=bool)
+    edge[edge_ids] = True
+    edge_rough = np.zeros(n_cores, dtype=bool)
     for i, key in enumerate(("sr", "sc")):
         if typical_spread is not None:
             typical = float(typical_spread[i])
@@ -406,7 +425,16 @@ def robust_deformation(
         typicals[key] = float(typical)
         with np.errstate(invalid="ignore"):
             rough = np.maximum(_ROUGH_FACTOR * typical, typical + _ROUGH_EXCESS)
-            weak |= (out[key] > rough) & (variation <= _MAX_VARIATION)
+            rough_cores = out[key] > rough
+        weak |= rough_cores & (variation <= _MAX_VARIATION)
+        edge_rough |= rough_cores
+    # a core next to an edge whose cylinder is rough did not find one plane there (its small
+    # ball took in the other surface and tilted), and one whose cylinder is sparse would be
+    # widened across the edge: it stays a corner, and its points take the value of a planar
+    # core
+    edge_rough = edge & (edge_rough | weak)
+    variation[edge_rough] = variation_wide[edge_rough]
+    weak &= ~edge_rough
     wide_ids = np.flatnonzero(weak)
     for start in range(0, len(wide_ids), _CHUNK):
         ids = wide_ids[start : start + _CHUNK]
@@ -452,8 +480,13 @@ def robust_deformation(
             unsupported |= out[key] > limit
     d_mean[unsupported] = np.nan
     n_unsupported = int(unsupported.sum())
+    # likewise a core next to an edge whose cylinder holds no value: its points take the
+    # value of a planar core, as every corner's do
+    edge_nan = edge & ~edge_rough & unsupported
+    variation[edge_nan] = variation_wide[edge_nan]
     with np.errstate(invalid="ignore", divide="ignore"):
         se = np.sqrt(out["sr"] ** 2 / n_r + out["sc"] ** 2 / n_c)
+    n_edge = int((edge & ~edge_rough & ~edge_nan).sum())
     # pass 4: take the smoothing bias out where the cylinders are dense enough to afford it,
     # and where they are too sparse for that, pool each core with its neighbours instead
     d_plain = d_mean
@@ -574,6 +607,7 @@ def robust_deformation(
             "sparse_cores": n_sparse,
             "deep_cylinder_cores": n_deep,
             "nan_cores": n_nan,
+            "edge_cores": n_edge,
             "unsupported_cores": n_unsupported,
             "sharpened_cores": int((beta > 0).sum()),
             "sharpen_strength_mean": float(beta[beta > 0].mean()) if beta.any() else 0.0,
@@ -582,6 +616,58 @@ def robust_deformation(
         },
         unsupported=unsupported_p,
     )
+
+
+def _edge_planes(
+    ref_index: _Epoch,
+    cores: np.ndarray,
+    normal: np.ndarray,
+    variation: np.ndarray,
+    thickness: np.ndarray,
+    radius: float,
+    workers: int,
+) -> np.ndarray:
+    """Fit the cores that straddle two surfaces at ``normal_radius`` again on a smaller ball.
+
+    A core within a normal radius of an edge of the section (wall meeting floor or roof) is
+    not planar at that radius (surface variation above ``_MAX_VARIATION``), and its points
+    would take the value of a planar core farther from the edge: a change along the edge
+    itself (a bulge low on a wall that wraps round onto the floor) was read from cores
+    0.3 m or more away, at a fraction of its size. Such a core is fitted again on the
+    reference points within ``radius``; where that plane is as thin as the planar cores
+    around it (its thickness, the points' spread across the plane, within
+    ``_ROUGH_FACTOR`` times and ``_ROUGH_EXCESS`` of their median), the core lies on one
+    surface at that scale: it takes the new normal and counts as planar from here on
+    (``variation`` is set to ``_MAX_VARIATION``). Cores on the edge itself stay as they
+    were. ``normal`` and ``variation`` are changed in place; returns the indices of the cores
+    that were.
+    """
+    corner = np.flatnonzero(np.isfinite(variation) & (variation > _MAX_VARIATION))
+    planar = np.flatnonzero(variation <= _MAX_VARIATION)
+    if corner.size == 0 or planar.size == 0:
+        return corner[:0]
+    # the noise the planar cores around show (their spread across the plane)
+    k = min(_EDGE_NEIGHBOURS, planar.size)
+    dist, j = cKDTree(cores[planar]).query(
+        cores[corner], k=k, distance_upper_bound=_EDGE_REACH, workers=workers
+    )
+    dist, j = dist.reshape(len(corner), k), j.reshape(len(corner), k)
+    found = np.isfinite(dist)
+    near_thick = np.where(found, thickness[planar[np.where(found, j, 0)]], np.nan)
+    with warnings.catch_warnings():  # a core without planar cores in reach: NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        noise = np.nanmedian(near_thick, axis=1)
+    ok = np.isfinite(noise)
+    corner, noise = corner[ok], noise[ok]
+    if corner.size == 0:
+        return corner
+    n_fine, t_fine = _ball_planes(ref_index, cores[corner], radius)
+    limit = np.maximum(_ROUGH_FACTOR * noise, noise + _ROUGH_EXCESS)
+    keep = t_fine <= limit
+    ids = corner[keep]
+    normal[ids] = n_fine[keep]
+    variation[ids] = _MAX_VARIATION
+    return ids
 
 
 def _scatter(values: np.ndarray, where: np.ndarray, fill: float) -> np.ndarray:
