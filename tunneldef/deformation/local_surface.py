@@ -416,7 +416,7 @@ def robust_deformation(
     typicals = {}
     edge = np.zeros(n_cores, dtype=bool)
     edge[edge_ids] = True
-    edge_rough = np.zeros(n_cores, dtype=bool)
+    rough_any = np.zeros(n_cores, dtype=bool)
     for i, key in enumerate(("sr", "sc")):
         if typical_spread is not None:
             typical = float(typical_spread[i])
@@ -427,14 +427,14 @@ def robust_deformation(
             rough = np.maximum(_ROUGH_FACTOR * typical, typical + _ROUGH_EXCESS)
             rough_cores = out[key] > rough
         weak |= rough_cores & (variation <= _MAX_VARIATION)
-        edge_rough |= rough_cores
+        rough_any |= rough_cores
     # a core next to an edge whose cylinder is rough did not find one plane there (its small
     # ball took in the other surface and tilted), and one whose cylinder is sparse would be
     # widened across the edge: it stays a corner, and its points take the value of a planar
     # core
-    edge_rough = edge & (edge_rough | weak)
-    variation[edge_rough] = variation_wide[edge_rough]
-    weak &= ~edge_rough
+    edge_back = edge & (rough_any | weak)
+    variation[edge_back] = variation_wide[edge_back]
+    weak &= ~edge_back
     wide_ids = np.flatnonzero(weak)
     for start in range(0, len(wide_ids), _CHUNK):
         ids = wide_ids[start : start + _CHUNK]
@@ -482,11 +482,11 @@ def robust_deformation(
     n_unsupported = int(unsupported.sum())
     # likewise a core next to an edge whose cylinder holds no value: its points take the
     # value of a planar core, as every corner's do
-    edge_nan = edge & ~edge_rough & unsupported
+    edge_nan = edge & ~edge_back & unsupported
     variation[edge_nan] = variation_wide[edge_nan]
     with np.errstate(invalid="ignore", divide="ignore"):
         se = np.sqrt(out["sr"] ** 2 / n_r + out["sc"] ** 2 / n_c)
-    n_edge = int((edge & ~edge_rough & ~edge_nan).sum())
+    n_edge = int((edge & ~edge_back & ~edge_nan).sum())
     # pass 4: take the smoothing bias out where the cylinders are dense enough to afford it,
     # and where they are too sparse for that, pool each core with its neighbours instead
     d_plain = d_mean
