@@ -44,7 +44,9 @@ This module implements the multiscale model-to-model idea instead (M3C2, Lague e
    two parts, and these were the tails of the field (values beyond 10 mm on unchanged rock).
 7. *Scale from the data*: where the value of steps 4-5 exceeds three times the LoD95 of its
    own noise (a change no noise explains: flat rock reaches it in about 1e-8 of its cores;
-   the registration's term, shared by a whole neighbourhood, is left out), the core is
+   the registration's term, shared by a whole neighbourhood, is left out), or where the
+   core's own cylinder does so by its own noise (a change narrower than the pooling, which
+   pools it below that margin: one wrapped round an edge of a sparse scan), the core is
    read at the finest support instead, its own cylinder with the smoothing bias taken out in
    full (``beta = 1``), so a narrow or strong change reads at its full size while flat rock
    keeps the quiet, pooled value (in the spirit of multi-scale M3C2: the smallest support
@@ -524,6 +526,10 @@ def robust_deformation(
         # had pushed up)
         lod_quiet = _Z95 * se_used
         fine = np.isfinite(d_mean) & (np.abs(d_mean) > _FINE_GATE * lod_quiet)
+        # or where the core's own cylinder does so by the same margin of its own noise: a
+        # change narrower than the pooling (one wrapped round an edge of a sparse scan,
+        # whose neighbours on the surface are unchanged rock) is pooled away below the gate
+        fine |= np.isfinite(d_plain) & (np.abs(d_plain) > _FINE_GATE * _Z95 * se)
     fine &= variation <= _MAX_VARIATION
     n_fine = int(fine.sum())
     if fine.any() and sharpen:
