@@ -13,8 +13,8 @@ Local inputs need the margin (:func:`tile_margin`): the 1 m chainage windows of 
 envelope, the voxel of a core, the normals' and the cylinders' neighbourhoods (the wide
 cylinder included), the cores a point is assigned to and interpolated from, the pooling
 and sharpening neighbourhoods of those cores, and the planar cores within 1 m that judge a
-core next to an edge (covered by the same 1 m term as the shell windows). Inputs taken from the whole clouds are computed
-once, from the whole clouds, and handed to every tile:
+core next to an edge (covered by the same 1 m term as the shell windows). Inputs taken from
+the whole clouds are computed once, from the whole clouds, and handed to every tile:
 
 * the local origin (the reference's mean) and the corner of the core voxel grid (the compared
   epoch's minimum), by the driver from the coordinates;
