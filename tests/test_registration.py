@@ -460,31 +460,36 @@ def test_open3d_icp_converges_in_survey_coordinates() -> None:
     assert err.max() < 0.002
 
 
-def test_shell_offset_tells_a_few_millimetres_from_the_noise_only_where_the_cells_can():
-    """The paired cell test of the shell refinement: at 400 points/m^2 and 15 mm noise a
-    4 mm lateral slide is told apart beyond the decision's standard errors (z 6.3), in both
-    directions; a 0.5 mm one is not (z 1.7). At 55 points/m^2 and 25 mm noise (cell medians
-    of a few tens of points) not even 8 mm is, so the thresholds decide there."""
+def test_shell_offset_asks_for_the_move_that_takes_the_shell_home_and_no_other():
+    """The cell test of the shell refinement follows the move cell by cell. A lateral slide
+    back onto the truth is asked for (share near 1; at 400 points/m^2 and 15 mm noise down to
+    1 mm, at 55 points/m^2 and 25 mm noise 8 mm) and the same slide away from it is refused
+    (share near 0); 1 mm at 55 points/m^2 and 25 mm noise is within the cells' noise on two
+    seeds of three (seed 5 here), so the thresholds decide there."""
     from scipy.spatial import cKDTree
 
     from tunneldef.registration.refine import shell_offset
     from tunneldef.registration.views import normals
 
-    def slide_z(density, noise, shift):
+    def slide(density, noise, shift, seed=4):
         tunnel = TunnelSpec(length=16.0, density=density, noise_sigma=noise, chamber=False,
                             equipment=False)
-        pair = make_pair(PairSpec(tunnel=tunnel, deformations=(), yaw_deg=0.0, seed=4))
+        pair = make_pair(PairSpec(tunnel=tunnel, deformations=(), yaw_deg=0.0, seed=seed))
         ref, cl = pair.ref.xyz, pair.truth.centerline
         cmp = pair.truth.cmp_xyz_in_ref
         lat = cl.frame_at(cl.project(cmp).chainage)[1]
         args = (ref, normals(ref), cKDTree(ref), cl)
-        off = shell_offset(*args, [cmp + shift * lat, cmp])
-        back = shell_offset(*args, [cmp, cmp + shift * lat])
-        assert off.cells >= 100 and off.scores[0] > off.scores[1] - 1e-3
-        return off.z, back.z
+        home = shell_offset(*args, [cmp + shift * lat, cmp])
+        away = shell_offset(*args, [cmp, cmp + shift * lat])
+        assert home.cells >= 100 and home.scores[0] > home.scores[1] - 1e-3
+        return home, away
 
-    limit = RegistrationConfig().refine_offset_z
-    z, back = slide_z(400.0, 0.015, 0.004)
-    assert z > limit and back < -limit, (z, back)
-    assert abs(slide_z(400.0, 0.015, 0.0005)[0]) < limit
-    assert abs(slide_z(55.0, 0.025, 0.008)[0]) < limit
+    z = RegistrationConfig().refine_offset_z
+    for density, noise, shift in ((400.0, 0.015, 0.004), (400.0, 0.015, 0.001),
+                                  (55.0, 0.025, 0.008)):
+        home, away = slide(density, noise, shift)
+        assert home.verdict(z) == "asked" and away.verdict(z) == "refused", (home, away)
+        if shift > 0.002:
+            assert abs(home.share - 1.0) < 0.15 and abs(away.share) < 0.15, (home, away)
+    home, away = slide(55.0, 0.025, 0.001, seed=5)
+    assert home.verdict(z) == away.verdict(z) == "undecided", (home, away)

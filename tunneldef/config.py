@@ -185,18 +185,17 @@ class RegistrationConfig:
     refine_keep: str = _p(
         "offset",
         "ours: how a refinement is judged. 'thresholds' keeps it beyond refine_min_angle_deg / "
-        "refine_min_shift; 'offset' keeps it when the stable shell's per-cell median "
-        "point-to-plane offsets fall with it by more than refine_offset_z standard errors, "
-        "refuses it when they rise by as much, and uses the thresholds in between "
-        "(docs/accuracy.md: at 400 points/m^2 a 4.4 mm correction the thresholds dropped is "
-        "kept, and the registration's point error falls from 4.5-5.1 to 1.0-1.4 mm)",
+        "refine_min_shift; 'offset' keeps it when the stable shell's per-cell median offsets "
+        "ask for it: the least-squares share of each cell's move that its offset before the "
+        "move asks for is at least one half and above 0 by refine_offset_z standard errors; "
+        "refused when below one half and below 1 by as much; the thresholds decide in "
+        "between (docs/accuracy.md: the demo's 1.5 mm lateral correction is kept, its "
+        "registration 2.5 -> 0.7 mm)",
         ("thresholds", "offset"),
     )
     refine_offset_z: float = _p(
         2.0, "ours: how many standard errors of the cell medians' noise the 'offset' rule "
-        "asks of a fall (or rise) of the shell's cell offsets before it decides (two-sided "
-        "95 %; docs/accuracy.md: at 3, two refinements at z 2.8 that took the registration "
-        "from 2.2 to 0.8 and from 5.9 to 2.6 mm were left to the thresholds, which dropped them)"
+        "asks of the share before it decides (95 %)"
     )
     voxel: float = _p(0.05, "ours: voxel size for refinement and baselines, m")
     coarse_vertical: str = _p("world", "ours: 'world' keeps z up in the coarse PCA (levelled "

@@ -83,33 +83,39 @@ def shell_offset(
     positions: list[np.ndarray],
     *,
     cell_length: float = 1.0,
-    sectors: int = 16,
+    sectors: int = 32,
     trim: float = 0.2,
     reach: float = 0.1,
     min_points: int = 20,
+    neighbours: int = 24,
 ) -> OffsetTest:
     """How far the compared shell sits off the reference, cell by cell, for several positions
-    of the same compared points, and whether the last position sits closer than the first
-    beyond the noise.
+    of the same compared points, and whether the last position is the one the shell asks for.
 
-    The compared points on the stable shell (as in :func:`refine_stable`, judged at the first
-    position) are binned into cells of ``cell_length`` along the reference centreline and
-    ``sectors`` angular sectors of the section; in each cell the median signed point-to-plane
-    distance to the nearest reference point (normals turned outward) is the cell's offset.
-    The score of a position is the RMS offset over the cells, leaving out the ``trim`` share
-    of cells with the largest ones (where the tunnel deformed). A rigid misalignment shows in
-    most cells (a lateral slide in every wall cell, a tilt in every roof cell); a local change
-    only in its own few, which the trim drops: the medians and the trim make the score a test
-    the robust ICP was not fitted to.
+    Each compared point on the stable shell (as in :func:`refine_stable`, judged at the first
+    position, within ``reach`` of a reference point) is tied, once, to the local plane of its
+    nearest reference point at the first position: the centroid of that point's
+    ``neighbours`` nearest reference points and its normal, turned outward. Its offset at
+    every position is its signed distance to that same plane, so a rigid move changes it
+    linearly, by exactly the move along the normal: measured against the nearest point at
+    each position instead, a move of 1.5 mm along a rough roof with 15 mm noise changed the
+    cells' medians by 0.8 mm of noise, as much as it moved the walls. The points are binned
+    into cells of ``cell_length`` along the reference centreline and ``sectors`` angular
+    sectors of the section (32: a wide, low section keeps a tenth of its cells on the walls);
+    a cell's offset is the median over its points. The score of a position is the RMS offset
+    over the cells, leaving out the ``trim`` share of cells with the largest ones (where the
+    tunnel deformed).
 
-    The first and last positions are also compared cell by cell (paired, on the cells that
-    hold ``min_points`` at both, leaving out the ``trim`` share whose offsets are largest at
-    both: ranked by the smaller of their two squares, so that a slide that shows only in a
-    few wall cells is not trimmed away): the fall of the squared offset per cell, its mean
-    over its standard error is ``z``. The cells hold
-    different points, so their medians' noise is independent; a fall of the score that is
-    within it (sparse or noisy shells: cell medians of a few tens of points) gives a small
-    ``z`` whatever the two scores say.
+    The last position is tested against the first on the cells that hold ``min_points`` at
+    both, leaving out the ``trim`` share whose offsets are largest at both (ranked by the
+    smaller of their two squares, so that a slide that shows in a few wall cells only is not
+    trimmed away): the least-squares share of each cell's move that its offset at the first
+    position asks for (``share``: 1 when the move takes the shell onto the reference, 0 when
+    the shell sat there already, negative when it moves away) and its standard error
+    (``share_se``; :meth:`OffsetTest.verdict` decides with them). The test follows the move's
+    own direction cell by cell: a lateral slide is judged on the walls, where it shows, and
+    the roof's noise does not dilute it. The cells hold different points, so their medians'
+    noise is independent; a share within it (sparse or noisy shells) is undecided.
 
     Parameters
     ----------
@@ -125,13 +131,23 @@ def shell_offset(
     -------
     OffsetTest
         ``scores`` (metres, one per position; NaN when fewer than 10 cells hold
-        ``min_points``), ``z`` (NaN when fewer than 10 cells are shared) and ``cells``.
+        ``min_points``), ``share`` and ``share_se`` (NaN when fewer than 10 cells are
+        shared, or the positions do not differ) and ``cells``.
     """
     first = positions[0]
-    shell = _shell_mask(first, ref_cl)
-    p = ref_cl.project(first[shell])
+    idx = np.flatnonzero(_shell_mask(first, ref_cl))
+    d, j = ref_tree.query(first[idx], workers=query_workers(len(idx)))
+    near = d <= reach
+    idx, j = idx[near], j[near]
+    uj, j_inv = np.unique(j, return_inverse=True)
+    k = min(neighbours, len(ref_xyz))
+    _, nb = ref_tree.query(ref_xyz[uj], k=k, workers=query_workers(len(uj)))
+    centre = ref_xyz[nb.reshape(len(uj), k)].mean(axis=1)[j_inv]
+    p = ref_cl.project(first[idx])
     _, lat, ver = ref_cl.frame_at(p.chainage)
     radial = p.lateral[:, None] * lat + p.vertical[:, None] * ver
+    normal = ref_normals[j]
+    normal = normal * np.sign(np.einsum("ij,ij->i", normal, radial))[:, None]
     ang = np.arctan2(p.vertical, p.lateral)
     cell = np.floor(p.chainage / cell_length).astype(np.int64) * sectors + (
         np.floor((ang + np.pi) / (2 * np.pi) * sectors).astype(np.int64) % sectors
@@ -140,15 +156,9 @@ def shell_offset(
     n_cells = int(cell.max()) + 1 if len(cell) else 0
     meds = np.full((len(positions), n_cells), np.nan)
     for row, pos in enumerate(positions):
-        pts = pos[shell]
-        d, j = ref_tree.query(pts, workers=query_workers(len(pts)))
-        n = ref_normals[j]
-        signed = np.einsum("ij,ij->i", pts - ref_xyz[j], n)
-        signed *= np.sign(np.einsum("ij,ij->i", n, radial))
-        ok = d <= reach
-        key, val = cell[ok], signed[ok]
-        order = np.lexsort((val, key))
-        key, val = key[order], val[order]
+        val = np.einsum("ij,ij->i", pos[idx] - centre, normal)
+        order = np.lexsort((val, cell))
+        key, val = cell[order], val[order]
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
         ends = np.r_[starts[1:], len(key)]
         full = ends - starts >= min_points
@@ -161,29 +171,47 @@ def shell_offset(
             scores.append(float("nan"))
             continue
         scores.append(float(np.sqrt(off[: max(1, int(round((1.0 - trim) * len(off))))].mean())))
-    z, used = float("nan"), 0
+    share, se, used = float("nan"), float("nan"), 0
     if len(positions) >= 2:
-        b2, a2 = meds[0] ** 2, meds[-1] ** 2
-        both = np.isfinite(b2) & np.isfinite(a2)
-        worst = np.minimum(b2, a2)[both]
-        keep = worst <= np.quantile(worst, 1.0 - trim) if both.any() else worst.astype(bool)
-        fall = (b2[both] - a2[both])[keep]
-        used = len(fall)
-        if used >= 10:
-            se = fall.std(ddof=1) / np.sqrt(used)
-            z = float(fall.mean() / se) if se > 0 else float("inf") * np.sign(fall.mean())
-    return OffsetTest(scores=scores, z=z, cells=used)
+        b, a = meds[0], meds[-1]
+        both = np.isfinite(b) & np.isfinite(a)
+        b, a = b[both], a[both]
+        worst = np.minimum(b * b, a * a)
+        keep = worst <= np.quantile(worst, 1.0 - trim) if len(worst) else worst.astype(bool)
+        b, moved = b[keep], (b - a)[keep]
+        used = len(b)
+        ss = float(moved @ moved)
+        if used >= 10 and ss > 0:
+            share = float(b @ moved) / ss
+            resid = b - share * moved
+            se = float(np.sqrt(resid @ resid / (used - 1) / ss))
+    return OffsetTest(scores=scores, share=share, share_se=se, cells=used)
 
 
 @dataclass(frozen=True)
 class OffsetTest:
     """Result of :func:`shell_offset`: trimmed RMS cell offset per position (m), and the
-    paired test of the last position against the first (``z``: mean fall of the squared cell
-    offsets over its standard error; positive = closer) on ``cells`` shared cells."""
+    test of the last position against the first on ``cells`` shared cells: ``share``, the
+    least-squares share of the cells' moves that their offsets at the first position ask for
+    (1: the move takes the shell onto the reference; 0: the shell sat there already;
+    negative: the move takes it away), and its standard error ``share_se``."""
 
     scores: list[float]
-    z: float
+    share: float
+    share_se: float
     cells: int
+
+    def verdict(self, z: float) -> str:
+        """``"asked"`` when the share is at least one half and above 0 by ``z`` standard
+        errors, ``"refused"`` when it is below one half and below 1 by ``z`` standard
+        errors, ``"undecided"`` otherwise (too few cells, or a share within the noise)."""
+        if not (np.isfinite(self.share) and np.isfinite(self.share_se)):
+            return "undecided"
+        if self.share >= 0.5 and self.share >= z * self.share_se:
+            return "asked"
+        if self.share < 0.5 and 1.0 - self.share >= z * self.share_se:
+            return "refused"
+        return "undecided"
 
 
 def _shell_mask(xyz: np.ndarray, cl: Centerline, tol: float = 0.1) -> np.ndarray:

@@ -363,19 +363,20 @@ def _refine_on_shell(
     before, after = test.scores
     # 'thresholds': a correction within the noise would only move the epoch towards its
     # deformed parts, so it is kept only when the centreline stages were measurably off;
-    # 'offset': kept when the shell sits closer to the reference with it, cell by cell, beyond
-    # the cell medians' noise (the ICP also pulls towards deformed parts; the trimmed cell
-    # medians do not follow), refused when it sits farther beyond that noise, and judged by
-    # the thresholds where the cells cannot tell (sparse or noisy shells, too few cells)
+    # 'offset': kept when the stable shell's cells ask for the move (their offsets before it,
+    # cell by cell, are at least half the move, beyond the cell medians' noise: the ICP also
+    # pulls towards deformed parts, which the trimmed cell medians do not ask for), refused
+    # when they ask for less than half of it, judged by the thresholds where they cannot tell
     by_thresholds = angle > rc.refine_min_angle_deg or move > rc.refine_min_shift
-    z = test.z
-    if rc.refine_keep == "offset" and np.isfinite(z) and abs(z) >= rc.refine_offset_z:
-        applied, rule = bool(z > 0), "offset"
+    verdict = test.verdict(rc.refine_offset_z)
+    if rc.refine_keep == "offset" and verdict != "undecided":
+        applied, rule = verdict == "asked", "offset"
     else:
         applied, rule = by_thresholds, "thresholds"
     info["refine"] = {"angle_deg": angle, "shift_m": move, "applied": bool(applied),
                       "offset_before_m": before, "offset_after_m": after,
-                      "offset_z": z, "offset_cells": test.cells, "rule": rule}
+                      "offset_share": test.share, "offset_share_se": test.share_se,
+                      "offset_cells": test.cells, "rule": rule}
     if applied:
         local = corr @ local
         if "refine_axial_uncertainty" in info:
