@@ -632,7 +632,10 @@ def survey_scores(d, pr, changes):
         "chamber_fa": 100.0 * float(np.mean(np.abs(d[unchanged & pr["chamber"]]) > THRESHOLD)),
     }
     for i, (_, s, _, amp, _, ln) in enumerate(changes):
-        core = shell & (np.abs(pr["chainage"] - s) < ln) & (pr["displacement"] <= -0.8 * amp)
+        # the change's own patch (``ln`` is its whole length): the three patches touch, and a
+        # window of +-ln took the bulge's points into both sags' cores
+        own = np.abs(pr["chainage"] - s) < 0.5 * ln
+        core = shell & own & (pr["displacement"] <= -0.8 * amp)
         out[f"true{i}"] = 1e3 * float(np.median(pr["displacement"][core]))
         out[f"read{i}"] = 1e3 * float(np.nanmedian(d[core]))
     return out
