@@ -187,8 +187,9 @@ class RegistrationConfig:
         "ours: how a refinement is judged. 'thresholds' keeps it beyond refine_min_angle_deg / "
         "refine_min_shift; 'offset' keeps it when the stable shell's per-cell median offsets "
         "ask for it: the least-squares share of each cell's move that its offset before the "
-        "move asks for is at least one half and above 0 by refine_offset_z standard errors; "
-        "refused when below one half and below 1 by as much; the thresholds decide in "
+        "move asks for is at least one half and above 0 by refine_offset_z standard errors "
+        "plus sqrt(6)/2 (the ICP fitted 6 parameters to the same shell); refused when below "
+        "one half and below 1 by refine_offset_z standard errors; the thresholds decide in "
         "between (docs/accuracy.md: the demo's 1.5 mm lateral correction is kept, its "
         "registration 2.5 -> 0.7 mm)",
         ("thresholds", "offset"),
