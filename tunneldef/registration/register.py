@@ -356,7 +356,7 @@ def _refine_on_shell(
     tan = ref_cl.frame_at(ref_cl.project(cmp_l).chainage)[0]
     delta -= np.einsum("ij,ij->i", delta, tan)[:, None] * tan
     move = float(np.sqrt(np.mean(np.einsum("ij,ij->i", delta, delta))))
-    sub = cmp_l[:: max(1, len(cmp_l) // 100_000)]
+    sub = cmp_l[:: max(1, len(cmp_l) // 200_000)]
     test = shell_offset(
         ctx.ref_l, ctx.ref_n, ctx.ref_tree, ref_cl, [sub, apply_transform(corr, sub)]
     )
