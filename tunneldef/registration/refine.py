@@ -101,7 +101,7 @@ def shell_offset(
     each position instead, a move of 1.5 mm along a rough roof with 15 mm noise changed the
     cells' medians by 0.8 mm of noise, as much as it moved the walls. The points are binned
     into cells of ``cell_length`` along the reference centreline and ``sectors`` angular
-    sectors of the section (32: a wide, low section keeps a tenth of its cells on the walls);
+    sectors of the section (32: twice the cells of 16, each a narrower strip of the outline);
     a cell's offset is the median over its points. The score of a position is the RMS offset
     over the cells, leaving out the ``trim`` share of cells with the largest ones (where the
     tunnel deformed).
