@@ -222,8 +222,56 @@ def test_surface_labels_are_the_same_a_chunk_at_a_time(monkeypatch) -> None:
     lat, ver = rng.normal(0.0, 2.0, n), rng.normal(0.0, 1.5, n)
     whole = sections.surface_labels(s, lat, ver, step=1.0)
     monkeypatch.setattr(sections, "_CHUNK", 777)
+    monkeypatch.setattr(sections, "_GROUP", 900)  # the bins' extents a few bins at a time
     np.testing.assert_array_equal(sections.surface_labels(s, lat, ver, step=1.0), whole)
     assert set(np.unique(whole)) == {0, 1, 2, 3}
+    # the rule written out point by point: each side's extent is the 95th percentile of the
+    # bin's offsets to that side (the whole cloud's below 30 points)
+    def extent(v: np.ndarray, whole_v: np.ndarray) -> float:
+        return float(np.quantile(v, 0.95)) if v.size >= 30 else float(np.quantile(whole_v, 0.95))
+
+    b = np.floor(s).astype(int)
+    expected = np.empty(n, dtype=np.uint8)
+    for k in np.unique(b):
+        m = b == k
+        la, ve = lat[m], ver[m]
+        e = [extent(la[la > 0], lat[lat > 0]), extent(-la[la < 0], -lat[lat < 0]),
+             extent(ve[ve > 0], ver[ver > 0]), extent(-ve[ve < 0], -ver[ver < 0])]
+        nl = np.where(la >= 0, la / e[0], -la / e[1])
+        nv = np.where(ve >= 0, ve / e[2], -ve / e[3])
+        expected[m] = np.where(nv >= nl, np.where(ve >= 0, ROOF, FLOOR),
+                               np.where(la >= 0, LEFT_WALL, RIGHT_WALL))
+    np.testing.assert_array_equal(whole, expected)
+
+
+@pytest.mark.parametrize(("step", "thickness"), [(1.0, 0.2), (0.5, 0.5), (0.3, 0.2999)])
+def test_section_statistics_hold_every_point_within_half_the_thickness(
+    step: float, thickness: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each section holds exactly the points within half its thickness of its chainage (the
+    points between sections are never sorted, a chunk at a time)."""
+    from tunneldef.deformation import sections
+
+    rng = np.random.default_rng(6)
+    n = 30_000
+    s = rng.uniform(-0.4, 25.3, n)
+    s[:50] = np.round(s[:50] / step) * step + thickness / 2  # on a section's edge
+    d = DeformationResult(
+        deformation=rng.normal(0.0, 0.01, n), horizontal=rng.normal(0.0, 0.01, n),
+        vertical=rng.normal(0.0, 0.01, n), chainage=s, surface=rng.integers(0, 4, n).astype(
+            np.uint8), shell=rng.random(n) < 0.9, xyz=np.zeros((n, 3)), method="robust",
+        centerline_length=25.0,
+    )
+    monkeypatch.setattr(sections, "_CHUNK", 1_234)
+    rows = section_statistics(d, step=step, thickness=thickness)
+    centres = np.arange(0, math.floor(25.0 / step + 1e-9) + 1) * step
+    assert [r["chainage"] for r in rows] == pytest.approx(list(centres))
+    for row, c in zip(rows, centres, strict=True):
+        inside = (s >= c - thickness / 2) & (s <= c + thickness / 2)
+        use = inside & d.shell
+        assert row["n_points"] == int(inside.sum())
+        assert row["n_valid"] == int(use.sum())
+        assert row["mean"] == pytest.approx(float(d.deformation[use].mean()), rel=1e-12)
 
 
 def test_surface_labels_with_a_stray_chainage_far_off() -> None:

@@ -54,6 +54,36 @@ def morton_order(xyz: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+def random_keep(
+    n: int, fraction: float, rng: int | np.random.Generator = 0, *, chunk: int = 2_000_000
+) -> np.ndarray:
+    """Keep each of ``n`` rows with probability ``fraction`` (seeded).
+
+    Parameters
+    ----------
+    n : int
+        Number of rows.
+    fraction : float
+        Probability of keeping a row.
+    rng : int or numpy.random.Generator
+        Seed of ``numpy.random.default_rng``, or a generator to draw from (it advances by
+        ``n`` draws).
+    chunk : int
+        Draws made at a time.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+        The mask ``rng.random(n) < fraction`` itself, drawn a chunk at a time: on a large
+        survey it needs one byte per row, not nine.
+    """
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    keep = np.empty(n, dtype=bool)
+    for a in range(0, n, chunk):
+        keep[a:a + chunk] = gen.random(min(chunk, n - a)) < fraction
+    return keep
+
+
 def random_subset(xyz: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """At most ``n`` of the points, drawn without replacement (seeded); all if there are fewer.
 

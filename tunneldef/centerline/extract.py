@@ -56,6 +56,7 @@ from ..curve import Centerline, Projection
 from ..errors import NotATunnelError
 from ..frame import TunnelFrame, principal_frame
 from ..progress import ProgressCallback, notify
+from ..spatial import random_keep
 from .fit import fit_centerline, fit_stiffest
 from .roof_floor import Crown, RoofFloor, crown_height, estimate_roll, roof_floor_lines
 from .slicing import slice_along_axis
@@ -787,7 +788,7 @@ def extract_centerline(
             f"({c.min_slices} slices x {sl.min_points} points); is the file complete?"
         )
     if len(pts) > c.max_points > 0:
-        keep = np.random.default_rng(0).random(len(pts)) < c.max_points / len(pts)
+        keep = random_keep(len(pts), c.max_points / len(pts))
         logger.info("centreline: %d of %d points used", int(keep.sum()), len(pts))
         pts = pts[keep]
     if c.remove_strays:

@@ -42,6 +42,7 @@ from ..curve import Centerline
 from ..errors import NetworkError, NotATunnelError
 from ..network import CenterlineNetwork, Junction, NetworkEdge
 from ..progress import ProgressCallback, notify
+from ..spatial import random_keep
 from .extract import (
     SliceRecord,
     _reject_jumps,
@@ -729,7 +730,7 @@ def extract_network(
             f"the cloud has {len(pts)} points; a centreline needs at least {need}"
         )
     if len(pts) > c.max_points > 0:
-        keep = np.random.default_rng(0).random(len(pts)) < c.max_points / len(pts)
+        keep = random_keep(len(pts), c.max_points / len(pts))
         pts = pts[keep]
     notify(progress, "network centrelines", 0.0)
     grid, graph = plan_graph(pts, nc)

@@ -30,6 +30,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..config import NetworkConfig
 from ..errors import NetworkError, TunnelDefError
+from ..spatial import random_keep
 from .plan import PlanGrid, plan_grid
 
 __all__ = [
@@ -562,7 +563,7 @@ def plan_topology(
     nc = network or NetworkConfig()
     pts = np.asarray(xyz, dtype=np.float64)
     if len(pts) > max_points:
-        pts = pts[np.random.default_rng(0).random(len(pts)) < max_points / len(pts)]
+        pts = pts[random_keep(len(pts), max_points / len(pts))]
     try:
         grid, graph = plan_graph(pts, nc)
     except TunnelDefError as exc:

@@ -41,6 +41,31 @@ logger = logging.getLogger(__name__)
 _EXTENT_QUANTILE = 0.95
 _MIN_EXTENT_POINTS = 30
 _CHUNK = 1_000_000  # points labelled at once
+_GROUP = 4_000_000  # points of the chainage bins gathered at once for their extents
+
+
+def _bins(s: np.ndarray, step: float) -> np.ndarray:
+    """Chainage bin of each point, from 0, computed a chunk at a time (int32 where the bins
+    fit; stray chainages far off get the occupied bins in their order)."""
+    lo = math.floor(float(np.min(s)) / step)
+    hi = math.floor(float(np.max(s)) / step)
+    if hi - lo > len(s) + 1_000_000:
+        b = np.floor(s / step).astype(np.int64)
+        return np.unique(b, return_inverse=True)[1].reshape(-1)
+    out = np.empty(len(s), dtype=np.int32 if hi - lo < 2**31 - 1 else np.int64)
+    for a in range(0, len(s), _CHUNK):
+        out[a:a + _CHUNK] = np.floor(s[a:a + _CHUNK] / step).astype(np.int64) - lo
+    return out
+
+
+def _side(values: np.ndarray, sign: float) -> np.ndarray:
+    """``sign * values`` where that is positive, gathered a chunk at a time (no whole-cloud
+    mask or product)."""
+    parts = []
+    for a in range(0, len(values), _CHUNK):
+        v = values[a:a + _CHUNK] * sign
+        parts.append(v[v > 0])
+    return np.concatenate(parts) if parts else np.empty(0)
 
 
 def _half_extents(values: np.ndarray, fallback: float) -> float:
@@ -89,31 +114,40 @@ def surface_labels(
         return labels
     if not step > 0:
         raise ConfigError(f"section step must be > 0 m, got {step!r}")
-    glob = [
-        _half_extents(lat[lat > 0], 1.0),
-        _half_extents(-lat[lat < 0], 1.0),
-        _half_extents(ver[ver > 0], 1.0),
-        _half_extents(-ver[ver < 0], 1.0),
+    glob = [  # the whole cloud's, for bins with too few points
+        _half_extents(_side(lat, 1.0), 1.0),
+        _half_extents(_side(lat, -1.0), 1.0),
+        _half_extents(_side(ver, 1.0), 1.0),
+        _half_extents(_side(ver, -1.0), 1.0),
     ]
-    # per bin, not per point: a large survey's labels need no (N, 4) array of extents
-    b = np.floor(s / step).astype(np.int64)
-    b -= b.min()
-    if b.max() > n + 1_000_000:  # stray chainages far off: the occupied bins, in their order
-        b = np.unique(b, return_inverse=True)[1].reshape(-1)
-    order = np.argsort(b, kind="stable")
+    # per bin, not per point: a large survey's labels need no (N, 4) array of extents, and
+    # the bins are gathered a group at a time (no argsort of the whole survey)
+    b = _bins(s, step)
     counts = np.bincount(b)
-    ends = np.cumsum(counts)
     ext = np.empty((len(counts), 4))  # half-extents (left, right, up, down) of each bin
-    for k in np.flatnonzero(counts):
-        sel = order[ends[k] - counts[k]:ends[k]]
-        la, ve = lat[sel], ver[sel]
-        ext[k] = [
-            _half_extents(la[la > 0], glob[0]),
-            _half_extents(-la[la < 0], glob[1]),
-            _half_extents(ve[ve > 0], glob[2]),
-            _half_extents(-ve[ve < 0], glob[3]),
-        ]
-    del order
+    ends = np.cumsum(counts)
+    k0 = 0
+    while k0 < len(counts):
+        # the bins [k0, k1) hold about _GROUP points (at least one bin)
+        k1 = max(k0 + 1, int(np.searchsorted(ends, ends[k0] - counts[k0] + _GROUP, "right")))
+        k1 = min(k1, len(counts))
+        sel = np.flatnonzero((b >= k0) & (b < k1))
+        sel = sel[np.argsort(b[sel], kind="stable")]
+        start = 0
+        for k in range(k0, k1):
+            part = sel[start:start + counts[k]]
+            start += counts[k]
+            if part.size == 0:
+                continue
+            la, ve = lat[part], ver[part]
+            ext[k] = [
+                _half_extents(la[la > 0], glob[0]),
+                _half_extents(-la[la < 0], glob[1]),
+                _half_extents(ve[ve > 0], glob[2]),
+                _half_extents(-ve[ve < 0], glob[3]),
+            ]
+        k0 = k1
+        del sel
     for a in range(0, n, _CHUNK):  # a chunk at a time (point by point: the same labels)
         e, la, ve = ext[b[a:a + _CHUNK]], lat[a:a + _CHUNK], ver[a:a + _CHUNK]
         nl = np.where(la >= 0, la / e[:, 0], -la / e[:, 1])
@@ -124,6 +158,17 @@ def surface_labels(
             np.where(la >= 0, LEFT_WALL, RIGHT_WALL),
         )
     return labels
+
+
+def _near_sections(s: np.ndarray, step: float, half: float) -> np.ndarray:
+    """Indices (ascending) of the points within ``half`` of a multiple of ``step``, with a
+    margin of rounding (a chunk at a time)."""
+    tol = half + 1e-6 * step
+    parts = []
+    for a in range(0, len(s), _CHUNK):
+        c = s[a:a + _CHUNK]
+        parts.append(np.flatnonzero(np.abs(c - np.rint(c / step) * step) <= tol) + a)
+    return np.concatenate(parts) if parts else np.empty(0, dtype=np.intp)
 
 
 def _stats(prefix: str, v: np.ndarray) -> dict[str, float]:
@@ -196,9 +241,12 @@ def section_statistics(
     if stop is None and length is not None:
         hi = min(hi, length)
     k0, k1 = math.ceil(lo / step - 1e-9), math.floor(hi / step + 1e-9)
-    order = np.argsort(s, kind="stable")
-    s_sorted = s[order]
     half = thickness / 2.0
+    # only the points within half a thickness of a section's chainage are sorted: a fifth of
+    # a large survey at the defaults (the sections are those of a sort of every point)
+    order = _near_sections(s, step, half) if thickness < step else np.arange(len(s))
+    order = order[np.argsort(s[order], kind="stable")]
+    s_sorted = s[order]
     rows: list[dict[str, Any]] = []
     for kk in range(k0, k1 + 1):
         c = kk * step

@@ -45,6 +45,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import RegistrationError
 from ..network import CenterlineNetwork
+from ..spatial import random_keep
 from ..transforms import apply_transform
 from .baselines import icp_plane
 from .verify import coherent_misfit
@@ -386,10 +387,10 @@ def register_networks(
             "cover the same drifts?"
         )
     rng = np.random.default_rng(0)
-    r = ref_xyz if len(ref_xyz) <= max_points else ref_xyz[rng.random(len(ref_xyz)) <
-                                                           max_points / len(ref_xyz)]
-    c = cmp_xyz if len(cmp_xyz) <= max_points else cmp_xyz[rng.random(len(cmp_xyz)) <
-                                                           max_points / len(cmp_xyz)]
+    r = ref_xyz if len(ref_xyz) <= max_points else ref_xyz[
+        random_keep(len(ref_xyz), max_points / len(ref_xyz), rng)]
+    c = cmp_xyz if len(cmp_xyz) <= max_points else cmp_xyz[
+        random_keep(len(cmp_xyz), max_points / len(cmp_xyz), rng)]
     origin = np.round(r[:: max(len(r) // 1000, 1)].mean(axis=0), -3)
     ref_pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(r - origin)).voxel_down_sample(
         voxel)
