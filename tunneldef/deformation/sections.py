@@ -41,7 +41,7 @@ logger = logging.getLogger(__name__)
 _EXTENT_QUANTILE = 0.95
 _MIN_EXTENT_POINTS = 30
 _CHUNK = 1_000_000  # points labelled at once
-_GROUP = 4_000_000  # points of the chainage bins gathered at once for their extents
+_GROUP = 2_000_000  # points of the chainage bins gathered at once for their extents
 
 
 def _bins(s: np.ndarray, step: float) -> np.ndarray:
@@ -59,19 +59,24 @@ def _bins(s: np.ndarray, step: float) -> np.ndarray:
 
 
 def _side(values: np.ndarray, sign: float) -> np.ndarray:
-    """``sign * values`` where that is positive, gathered a chunk at a time (no whole-cloud
-    mask or product)."""
-    parts = []
-    for a in range(0, len(values), _CHUNK):
+    """``sign * values`` where that is positive, in order, gathered a chunk at a time into one
+    array (no whole-cloud mask, product or list of pieces)."""
+    chunks = range(0, len(values), _CHUNK)
+    counts = [int(np.count_nonzero(values[a:a + _CHUNK] * sign > 0)) for a in chunks]
+    out = np.empty(sum(counts))
+    at = 0
+    for a, m in zip(chunks, counts, strict=True):
         v = values[a:a + _CHUNK] * sign
-        parts.append(v[v > 0])
-    return np.concatenate(parts) if parts else np.empty(0)
+        out[at:at + m] = v[v > 0]
+        at += m
+    return out
 
 
 def _half_extents(values: np.ndarray, fallback: float) -> float:
+    """The 95th percentile of ``values`` (a scratch copy: partitioned in place)."""
     if values.size < _MIN_EXTENT_POINTS:
         return fallback
-    e = float(np.quantile(values, _EXTENT_QUANTILE))
+    e = float(np.quantile(values, _EXTENT_QUANTILE, overwrite_input=True))
     return e if e > 1e-3 else fallback
 
 
