@@ -8,7 +8,8 @@
   to an edge of the section, where the wider fit straddles two surfaces;
 * :func:`_epoch_stats`: the clipped mean, spread and count of one epoch's points in each core's
   cylinder, projected on its normal; the neighbourhoods come from :class:`_RadiusIndex`
-  (Open3D's fixed-radius hash grid) as flat arrays, and every statistic is a ``np.bincount``.
+  (Open3D's fixed-radius hash grid), and the clipping runs core by core in compiled code
+  (:func:`.kernels.cylinder_stats`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ _CHUNK = 40_000  # cores per neighbourhood query (bounds the flat neighbour arra
 _INNER_TRIM = 0.0
 _MAX_ANGLE_DEG = 35.0  # points of the same surface as a core: normals within this angle
 _COS_MAX_ANGLE = float(np.cos(np.radians(_MAX_ANGLE_DEG)))
+_CLIP_K = 3.0  # sigma clipping of the cylinders' values at max(k * std, floor) from the mean
+_CLIP_FLOOR = 0.005  # m
 
 
 def voxel_cores(
@@ -105,6 +108,18 @@ class _RadiusIndex:
         counts = np.diff(splits.numpy())
         group = np.repeat(np.arange(len(centres), dtype=np.intp), counts)
         return group, idx.numpy().astype(np.intp, copy=False), d2.numpy()
+
+
+    def ball_csr(self, centres: np.ndarray, radius: float):
+        """Points within ``radius`` of each centre as Open3D gives them: ``splits`` (C + 1),
+        ``idx`` (point index) and ``d2`` (squared distance, float32); centre ``c``'s points are
+        ``idx[splits[c]:splits[c + 1]]``."""
+        if self._nns is None or len(centres) == 0:
+            return (np.zeros(len(centres) + 1, np.int64), np.empty(0, np.int64),
+                    np.empty(0, np.float32))
+        q = self._o3d.core.Tensor(np.ascontiguousarray(centres, dtype=np.float32))
+        idx, d2, splits = self._nns.fixed_radius_search(q, float(radius), sort=False)
+        return splits.numpy(), idx.numpy(), d2.numpy()
 
 
 class _Epoch(_RadiusIndex):
@@ -234,54 +249,6 @@ def normal_grid_corner(
     return np.minimum(ref.min(axis=0), cores.min(axis=0)) - (radius + 2.0 * spacing)
 
 
-def _group_moments(group, values, keep, ngroups):
-    """Count, mean and standard deviation of the kept values of each group."""
-    w = keep.astype(np.float64)
-    n = np.bincount(group, weights=w, minlength=ngroups)
-    mean = np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0)
-    dev = values - mean[group]
-    var = np.bincount(group, weights=w * dev * dev, minlength=ngroups) / np.maximum(n - 1.0, 1.0)
-    return n, mean, np.sqrt(var), dev
-
-
-def _clipped_stats(
-    group: np.ndarray,
-    values: np.ndarray,
-    ngroups: int,
-    *,
-    k: float = 3.0,
-    floor: float = 0.005,
-    trim: float = _INNER_TRIM,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robust location, spread and count of ``values`` (positions along the outward normal)
-    per group, without sorting.
-
-    (1) Two passes of sigma clipping: values farther than ``max(k * std, floor)`` from the
-    mean are dropped, the first pass's mean and std taken over all values; the standard
-    deviation of the survivors is the spread returned (for the level of detection). (2) The
-    innermost ``trim`` fraction is dropped: values below ``mean - z * std``, ``z`` the
-    ``trim`` quantile of a normal distribution (cables, pipe backs, the other surface near a
-    corner all lie inward of the shell; the rock behind it is clean). (3) Values farther than
-    ``k`` standard deviations from the survivors' mean are dropped. Returns the mean of the last
-    survivors, the spread and their count (groups without values get NaN and 0), and which
-    values survived.
-    """
-    keep = np.ones(values.shape[0], dtype=bool)
-    _, _, std, dev = _group_moments(group, values, keep, ngroups)
-    keep = np.abs(dev) <= np.maximum(k * std[group], floor)
-    _, mean, spread, dev = _group_moments(group, values, keep, ngroups)
-    keep = np.abs(dev) <= np.maximum(k * spread[group], floor)
-    if trim > 0:
-        keep &= dev >= -_normal_quantile(1.0 - trim) * spread[group]
-    _, _, std, dev = _group_moments(group, values, keep, ngroups)
-    keep &= np.abs(dev) <= np.maximum(k * std[group], floor)
-    n, mean, _, _ = _group_moments(group, values, keep, ngroups)
-    empty = n < 1
-    mean[empty] = np.nan
-    spread[empty] = np.nan
-    return mean, spread, n.astype(np.int32), keep
-
-
 def _normal_quantile(p: float) -> float:
     """Quantile of the standard normal distribution."""
     from scipy.special import ndtri
@@ -297,24 +264,25 @@ def _epoch_stats(epoch: _Epoch, cores, normals, radius, depth):
 
     Offsets from a core are small, so they are computed in float32; only points whose own
     normal is within ``_MAX_ANGLE_DEG`` of the core's count. NaN / 0 without points.
+
+    The values along the normal are clipped without sorting: (1) two passes of sigma clipping
+    (values farther than ``max(3 std, 5 mm)`` from the mean dropped, the first pass's mean and
+    std taken over all values); the standard deviation of the survivors is the spread returned
+    (for the level of detection). (2) With ``_INNER_TRIM`` > 0, the innermost fraction is
+    dropped (values below ``mean - z std``, ``z`` its normal quantile). (3) Values farther than
+    ``max(3 std, 5 mm)`` from the survivors' mean are dropped; the mean and count of the last
+    survivors are returned.
     """
     if epoch.empty or len(cores) == 0:
         nan = np.full(len(cores), np.nan)
         centre = np.full((len(cores), 3), np.nan)
         return nan, nan.copy(), np.zeros(len(cores), dtype=np.int32), centre
-    group, idx, d2 = epoch.ball(cores, float(np.hypot(radius, depth)))
-    n32 = normals.astype(np.float32)
-    cn = n32[group]
-    a = np.einsum("ij,ij->i", epoch.pts[idx] - cores.astype(np.float32)[group], cn)
-    inside = (np.abs(a) <= depth) & (d2 - a * a <= radius * radius)
-    group, idx, a, cn = group[inside], idx[inside], a[inside], cn[inside]
-    same = np.einsum("ij,ij->i", epoch.normals[idx], cn) >= _COS_MAX_ANGLE
-    group, idx, a, cn = group[same], idx[same], a[same], cn[same]
-    mean, spread, n, keep = _clipped_stats(group, a.astype(np.float64), len(cores))
-    g, w = group[keep], np.maximum(n, 1).astype(np.float64)
-    across = epoch.pts[idx[keep]] - cores.astype(np.float32)[g] - a[keep, None] * cn[keep]
-    centre = np.stack(
-        [np.bincount(g, weights=across[:, i], minlength=len(cores)) / w for i in range(3)], axis=1
+    from .kernels import cylinder_stats
+
+    splits, idx, d2 = epoch.ball_csr(cores, float(np.hypot(radius, depth)))
+    trim_z = _normal_quantile(1.0 - _INNER_TRIM) if _INNER_TRIM > 0 else 0.0
+    return cylinder_stats(
+        epoch.pts, epoch.normals, np.ascontiguousarray(cores, dtype=np.float32),
+        np.ascontiguousarray(normals, dtype=np.float32), splits, idx, d2, float(radius),
+        float(depth), _COS_MAX_ANGLE, _CLIP_K, _CLIP_FLOOR, trim_z,
     )
-    centre[n < 1] = np.nan
-    return mean, spread, n, centre

@@ -1,0 +1,97 @@
+"""The compiled cylinder statistics equal their NumPy formulation bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tunneldef.deformation import cylinders
+from tunneldef.deformation.kernels import cylinder_stats
+
+
+def _moments(group, values, keep, ngroups):
+    w = keep.astype(np.float64)
+    n = np.bincount(group, weights=w, minlength=ngroups)
+    mean = np.bincount(group, weights=w * values, minlength=ngroups) / np.maximum(n, 1.0)
+    dev = values - mean[group]
+    var = np.bincount(group, weights=w * dev * dev, minlength=ngroups) / np.maximum(n - 1.0, 1.0)
+    return n, mean, np.sqrt(var), dev
+
+
+def _numpy_stats(pts, pt_normals, cores, normals, splits, idx, d2, radius, depth, trim_z):
+    """The statistics as whole-array NumPy passes over the flat (core, point) pairs."""
+    group = np.repeat(np.arange(len(cores)), np.diff(splits))
+    cn = normals[group]
+    a = np.einsum("ij,ij->i", pts[idx] - cores[group], cn)
+    inside = (np.abs(a) <= depth) & (d2 - a * a <= radius * radius)
+    group, idx, a, cn = group[inside], idx[inside], a[inside], cn[inside]
+    same = np.einsum("ij,ij->i", pt_normals[idx], cn) >= cylinders._COS_MAX_ANGLE
+    group, idx, a, cn = group[same], idx[same], a[same], cn[same]
+    values, ng, k, floor = a.astype(np.float64), len(cores), 3.0, 0.005
+    keep = np.ones(values.shape[0], dtype=bool)
+    _, _, std, dev = _moments(group, values, keep, ng)
+    keep = np.abs(dev) <= np.maximum(k * std[group], floor)
+    _, mean, spread, dev = _moments(group, values, keep, ng)
+    keep = np.abs(dev) <= np.maximum(k * spread[group], floor)
+    if trim_z > 0:
+        keep &= dev >= -trim_z * spread[group]
+    _, _, std, dev = _moments(group, values, keep, ng)
+    keep &= np.abs(dev) <= np.maximum(k * std[group], floor)
+    n, mean, _, _ = _moments(group, values, keep, ng)
+    mean[n < 1] = np.nan
+    spread[n < 1] = np.nan
+    g, w = group[keep], np.maximum(n, 1.0)
+    across = pts[idx[keep]] - cores[g] - a[keep, None] * cn[keep]
+    centre = np.stack([np.bincount(g, weights=across[:, i], minlength=ng) / w
+                       for i in range(3)], axis=1)
+    centre[n < 1] = np.nan
+    return mean, spread, n.astype(np.int32), centre
+
+
+def _scene(seed: int):
+    """A rough wall with pipes in front of it, stray returns and a few far cores."""
+    rng = np.random.default_rng(seed)
+    m = 60_000
+    pts = np.c_[rng.uniform(0, 4, m), rng.uniform(0, 3, m), rng.normal(0, 0.012, m)]
+    pipe = rng.random(m) < 0.08
+    pts[pipe, 2] -= rng.uniform(0.05, 0.25, pipe.sum())  # in front of the rock
+    stray = rng.random(m) < 0.01
+    pts[stray, 2] += rng.normal(0, 0.2, stray.sum())
+    pt_normals = np.tile([0.0, 0.0, 1.0], (m, 1)) + rng.normal(0, 0.2, (m, 3))
+    pt_normals[rng.random(m) < 0.05] *= -1  # another surface's points
+    pt_normals /= np.linalg.norm(pt_normals, axis=1, keepdims=True)
+    cores = np.c_[rng.uniform(0, 4, 900), rng.uniform(0, 3, 900), rng.normal(0, 0.01, 900)]
+    cores[:7] += [0.0, 0.0, 5.0]  # nothing within reach
+    cores[7:20, 0] = -0.1  # at the edge of the scan: one-sided cylinders
+    normals = np.tile([0.0, 0.0, 1.0], (900, 1)) + rng.normal(0, 0.05, (900, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return (pts.astype(np.float32), pt_normals.astype(np.float32), cores.astype(np.float32),
+            normals.astype(np.float32))
+
+
+@pytest.mark.parametrize(("seed", "trim_z"), [(0, 0.0), (1, 0.0), (2, 0.84)])
+def test_cylinder_stats_equal_the_numpy_formulation(seed: int, trim_z: float) -> None:
+    pts, pt_normals, cores, normals = _scene(seed)
+    radius, depth = 0.2, 0.3
+    epoch = cylinders._Epoch(pts, pt_normals, float(np.hypot(radius, depth)))
+    splits, idx, d2 = epoch.ball_csr(cores, float(np.hypot(radius, depth)))
+    got = cylinder_stats(pts, pt_normals, cores, normals, splits, idx, d2, radius, depth,
+                         cylinders._COS_MAX_ANGLE, 3.0, 0.005, trim_z)
+    want = _numpy_stats(pts, pt_normals, cores, normals, splits, idx.astype(np.intp), d2,
+                        radius, depth, trim_z)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype
+        np.testing.assert_array_equal(g, w)
+    mean, spread, count, centre = got
+    assert np.all(count[:7] == 0) and np.isnan(mean[:7]).all() and np.isnan(centre[:7]).all()
+    ok = count > 0
+    assert ok.sum() > 850
+    # the rock's surface at 0 within the noise, pipes and strays clipped away
+    assert abs(float(np.median(mean[ok]))) < 0.003
+    assert 0.008 < float(np.median(spread[ok])) < 0.04  # the noise, widened by pipe backs
+    # cylinders at the scan's edge are covered on one side only
+    assert float(np.median(centre[7:20, 0])) > 0.05
+    if trim_z == 0.0:  # what _epoch_stats gives is the kernel's
+        via = cylinders._epoch_stats(epoch, cores, normals, radius, depth)
+        for g, w in zip(via, got, strict=True):
+            np.testing.assert_array_equal(g, w)
