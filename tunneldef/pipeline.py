@@ -243,15 +243,19 @@ class Result:
 
     def statistics(self) -> dict[str, Any]:
         """Global statistics of the signed deformation on shell points (m)."""
-        d = np.asarray(self.cloud.fields["deformation"], dtype=np.float64)
+        d = np.asarray(self.cloud.fields["deformation"])
         shell = np.asarray(self.cloud.fields.get("shell", np.ones(len(d))), dtype=bool)
-        v = d[shell & np.isfinite(d)]
+        # only the shell's finite values in float64, and |v| in place of v: on a large survey
+        # no float64 copy of the whole field, of |v| or of the percentiles' input
+        v = d[shell & np.isfinite(d)].astype(np.float64)
         out: dict[str, Any] = {"count": int(v.size), "points": int(d.size)}
         if v.size:
-            a = np.abs(v)
-            out.update(mean=float(v.mean()), std=float(v.std()), mean_abs=float(a.mean()),
-                       p50_abs=float(np.percentile(a, 50)), p95_abs=float(np.percentile(a, 95)),
-                       min=float(v.min()), max=float(v.max()))
+            mean, std, lo, hi = float(v.mean()), float(v.std()), float(v.min()), float(v.max())
+            a = np.abs(v, out=v)
+            mean_abs = float(a.mean())
+            p50, p95 = np.percentile(a, [50, 95], overwrite_input=True)
+            out.update(mean=mean, std=std, mean_abs=mean_abs, p50_abs=float(p50),
+                       p95_abs=float(p95), min=lo, max=hi)
         danger = np.asarray(self.cloud.fields["danger"])
         out["danger_points"] = int(danger.sum())
         if "significant" in self.cloud.fields:
