@@ -101,14 +101,9 @@ class _RadiusIndex:
     def ball(self, centres: np.ndarray, radius: float):
         """Points within ``radius`` of each centre: flat ``group`` (sorted centre index),
         ``idx`` (point index) and ``d2`` (squared distance, float32) arrays."""
-        if self._nns is None or len(centres) == 0:
-            return np.empty(0, np.intp), np.empty(0, np.intp), np.empty(0, np.float32)
-        q = self._o3d.core.Tensor(np.ascontiguousarray(centres, dtype=np.float32))
-        idx, d2, splits = self._nns.fixed_radius_search(q, float(radius), sort=False)
-        counts = np.diff(splits.numpy())
-        group = np.repeat(np.arange(len(centres), dtype=np.intp), counts)
-        return group, idx.numpy().astype(np.intp, copy=False), d2.numpy()
-
+        splits, idx, d2 = self.ball_csr(centres, radius)
+        group = np.repeat(np.arange(len(centres), dtype=np.intp), np.diff(splits))
+        return group, idx.astype(np.intp, copy=False), d2
 
     def ball_csr(self, centres: np.ndarray, radius: float):
         """Points within ``radius`` of each centre as Open3D gives them: ``splits`` (C + 1),
