@@ -57,7 +57,10 @@ def _assign_cores(
     A point keeps its voxel's core unless that core straddles two surfaces (surface variation
     above ``_MAX_VARIATION``, e.g. a voxel on a wall-roof corner, whose tilted cylinder mixes
     both): then it takes, among the ``_K_ASSIGN`` nearest planar cores within ``reach``, the one
-    whose plane passes closest to it.
+    whose plane passes closest to it, if that plane passes within ``_SPREAD_PLANE`` of it (the
+    test :func:`_spread` applies to its neighbours); otherwise it keeps its own core, whose
+    value may be none. A plane farther off is another surface (the floor 0.65 m below the
+    wall behind a row of pipes), and its value is not the point's.
     """
     planar = valid & (variation <= _MAX_VARIATION)
     corner = np.isfinite(variation) & (variation > _MAX_VARIATION)  # not: no reference near
@@ -74,7 +77,7 @@ def _assign_cores(
     res = np.abs(np.einsum("ijk,ijk->ij", pts[move][:, None, :] - cores[jj], normals[jj]))
     res[~found] = np.inf
     best = np.argmin(res, axis=1)
-    ok = found.any(axis=1)
+    ok = res[np.arange(len(move)), best] <= _SPREAD_PLANE
     point_core[move[ok]] = jj[ok, best[ok]]
     return point_core
 

@@ -79,7 +79,9 @@ mid-air). Where fewer than three reference points lie within ``normal_radius``, 
 falls back to the radial direction from the centreline. Corners: points whose core
 straddles two surfaces (surface variation above 0.02) even on the smaller ball, or whose
 edge core's cylinder is rough, sparse or unsupported, take the value of the nearest planar
-core whose plane passes closest to them.
+core whose plane passes closest to them, if it passes within 0.1 m (the interpolation's own
+test); otherwise they keep their own core's value, or none (the rock behind pipes, where the
+closest plane was the floor's 0.65 m away, read a 41 mm bulge as +6 mm).
 
 Everything is vectorised: cylinder neighbourhoods come from Open3D's fixed-radius hash grid
 (``open3d.core.nns``, multi-threaded) on spatially sorted copies of the clouds as one flat
