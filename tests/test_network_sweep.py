@@ -37,3 +37,13 @@ def test_a_bulge_behind_a_pipe_is_read_within_its_stated_lod() -> None:
     that bias in the LoD95."""
     case = run_case(draw(16000002, 400_000))
     assert case.outcome == "correct", table([case])
+
+
+def test_a_slice_widened_by_a_short_drifts_mouth_does_not_bend_the_curve() -> None:
+    """Sweep case 16000007: the reference walker went 4.4 m into a cross-cut (too short for
+    a branch); one slice at its mouth read the far wall 0.22 m out, passed the 0.3 m niche
+    rule, and pulled a 90 m drift's curve 0.1 m off its axis while the curve claimed 10 mm.
+    Wider than its neighbours by more than 3 robust spreads, it is now left out."""
+    case = run_case(draw(16000007, 400_000))
+    assert case.outcome == "correct", table([case])
+    assert case.centre_p95 <= 0.03, table([case])

@@ -125,10 +125,11 @@ class CenterlineConfig:
                                     "width (the narrowest that 30 % of them agree with, within "
                                     "this) by more than this is a chamber/niche/junction and is "
                                     "rejected (narrower: inconsistent walls), m")
-    narrow_sigmas: float = _p(3.0, "ours: a slice narrower than its neighbours' median width, "
-                                   "or higher or lower than their median height, by more than "
-                                   "this many robust spreads of those values is rejected (a "
-                                   "wall read on pipes where a hole hides it; a sparse arch's "
+    narrow_sigmas: float = _p(3.0, "ours: a slice narrower or wider than its neighbours' "
+                                   "median width, or higher or lower than their median "
+                                   "height, by more than this many robust spreads of those "
+                                   "values is rejected (a wall read on pipes where a hole "
+                                   "hides it, or in a short drift's mouth; a sparse arch's "
                                    "roof peak on its shoulder); 0 = off")
     max_height_jump: float = _p(0.3, "ours: same against the neighbours' median height "
                                      "(missing floor/roof), m")

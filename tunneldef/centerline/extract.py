@@ -442,15 +442,24 @@ def _reject_jumps(records: list[SliceRecord], c: CenterlineConfig) -> None:
     _reject_narrow(records, c)
 
 
+#: A slice wider than its neighbours is left out only beyond this too (its centre moves by
+#: half of it): the robust spread of the widths is 3-4 mm on a clean 120 points/m^2 scan,
+#: where slices 12 mm wider are harmless, m.
+_WIDER_FLOOR = 0.1
+
+
 def _reject_narrow(records: list[SliceRecord], c: CenterlineConfig, min_slices: int = 10) -> None:
-    """Among the slices the jump rules kept, reject those narrower than their neighbours'
-    median width, or higher or lower than their median height, by more than
+    """Among the slices the jump rules kept, reject those narrower or wider than their
+    neighbours' median width, or higher or lower than their median height, by more than
     ``narrow_sigmas`` robust spreads (1.4826 MAD of the values against those medians); with
     fewer than ``min_slices`` the spreads are not known.
 
     Walls and roof do not move in and out by centimetres from one slice to the next, but a
-    wall read on pipes where a hole hides it does, and so does a sparse arch's roof peak that
-    lands on its shoulder: either moves the centre by half the difference.
+    wall read on pipes where a hole hides it does, so does a wall read a little way into the
+    mouth of a short drift the skeleton did not keep as a branch (0.22 m: that slice's centre
+    took a 90 m drift's curve 0.1 m off its axis), and so does a sparse arch's roof peak that
+    lands on its shoulder: each moves the centre by half the difference (wider: only beyond
+    ``_WIDER_FLOOR`` too).
     """
     ok = [r for r in records if r.ok]
     if c.narrow_sigmas <= 0 or len(ok) < min_slices:
@@ -458,19 +467,25 @@ def _reject_narrow(records: list[SliceRecord], c: CenterlineConfig, min_slices: 
     st = np.array([r.station for r in ok])
     near = np.abs(st[:, None] - st[None, :]) <= c.neighbour_window
     verdicts = []
-    for key, sided in (("width", True), ("height", False)):
+    for key in ("width", "height"):
         v = np.array([getattr(r, key) for r in ok])
         med = np.array([np.median(v[m]) for m in near])
         spread = 1.4826 * float(np.median(np.abs(v - med)))
-        limit = min(c.max_width_jump if sided else c.max_height_jump, c.narrow_sigmas * spread)
-        off = (med - v) if sided else np.abs(v - med)
-        verdicts.append((key, v, med, off > limit))
+        jump = c.max_width_jump if key == "width" else c.max_height_jump
+        limit = min(jump, c.narrow_sigmas * spread)
+        bad = np.abs(v - med) > limit
+        if key == "width":  # wider: only where the centre would move by more than noise
+            bad &= (med - v > limit) | (v - med > max(limit, _WIDER_FLOOR))
+        verdicts.append((key, v, med, bad))
     for i, r in enumerate(ok):
         for key, v, med, bad in verdicts:
             if bad[i]:
-                what = "narrower than" if key == "width" else "height unlike"
-                cause = ("a wall hidden, or read on equipment" if key == "width"
-                         else "roof or floor read off the surface")
+                if key == "height":
+                    what, cause = "height unlike", "roof or floor read off the surface"
+                elif v[i] < med[i]:
+                    what, cause = "narrower than", "a wall hidden, or read on equipment"
+                else:
+                    what, cause = "wider than", "a wall read in a niche, a hole or a drift's mouth"
                 r.ok, r.reason = (
                     False, f"{what} nearby: {key} {v[i]:.3f} m vs {med[i]:.3f} m ({cause})")
                 break
