@@ -47,3 +47,13 @@ def test_a_slice_widened_by_a_short_drifts_mouth_does_not_bend_the_curve() -> No
     case = run_case(draw(16000007, 400_000))
     assert case.outcome == "correct", table([case])
     assert case.centre_p95 <= 0.03, table([case])
+
+
+def test_the_main_drift_at_a_cross_cuts_mouth_follows_the_drift_correction() -> None:
+    """Sweep case 17000005: 1.3 k points of the main drift's floor at the mouth of a
+    cross-cut only the reference walked lie nearest that cross-cut's axis, too few for a
+    drift block of their own; they kept the rigid pose while the main drift around them was
+    corrected, read 14 mm of false change, and the survey was refused although its
+    registration was right (2.9 mm). They now take their neighbours' correction."""
+    case = run_case(draw(17000005, 400_000))
+    assert case.outcome == "correct", table([case])

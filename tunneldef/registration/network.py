@@ -482,6 +482,33 @@ def _plane_residual(ref_tree: cKDTree, normals: np.ndarray, ref_pts: np.ndarray,
     return out
 
 
+def _borrow(xyz: np.ndarray, disp: np.ndarray, known: np.ndarray, *, reach: float,
+            k: int = 8, step: float = 0.25) -> None:
+    """Give the points without a drift estimate of their own (``~known``: on an edge, or a
+    stretch of one, with too few points for a block, such as the mouth of a cross-cut the
+    other epoch did not walk, whose points lie nearest its axis) the mean displacement of the
+    ``k`` nearest points with one, within ``reach`` (in place).
+
+    Drift is smooth in space: left uncorrected, those points kept the rigid pose while the
+    main drift around them moved by the correction (14 mm at a junction), and read it as
+    change. Thinned to one point per ``step`` cube first, metres.
+    """
+    lost = np.flatnonzero(~known)
+    have = np.flatnonzero(known)
+    if lost.size == 0 or have.size == 0:
+        return
+    cell = np.floor(xyz[have] / step).astype(np.int64)
+    _, first = np.unique(cell, axis=0, return_index=True)
+    src = have[first]
+    dist, j = cKDTree(xyz[src]).query(xyz[lost], k=min(k, src.size), distance_upper_bound=reach)
+    dist, j = dist.reshape(len(lost), -1), j.reshape(len(lost), -1)
+    found = np.isfinite(dist)
+    n = found.sum(axis=1)
+    got = n > 0
+    vals = disp[src[np.where(found, j, 0)]] * found[:, :, None]
+    disp[lost[got]] = vals[got].sum(axis=1) / n[got, None]
+
+
 def correct_drift(
     ref_xyz: np.ndarray,
     cmp_xyz: np.ndarray,
@@ -500,7 +527,11 @@ def correct_drift(
     reference by point-to-plane ICP with a tight match distance (``max_distance``: a local
     change such as a sag, a bulge or a heave is a small part of a block's shell and outside
     the match distance where it is large). The blocks' displacements are blended linearly along
-    the chainage between block centres, so the correction is continuous along each edge.
+    the chainage between block centres, so the correction is continuous along each edge. A
+    block with too few points gets no estimate and its stretch follows the blocks beside it;
+    points with no block at all (an edge too thin for one, like the main drift's floor at the
+    mouth of a cross-cut the compared walker did not enter) take their nearest corrected
+    neighbours' displacement within a block's length (:func:`_borrow`).
 
     The correction is used only when it lowers the compared points' coherent misfit
     (:func:`~tunneldef.registration.verify.coherent_misfit`: the point-to-plane misfit shared
@@ -549,7 +580,7 @@ def correct_drift(
             sel = mc[np.abs(s - c) <= 0.75 * width]
             rsel = (pr.branch == e.id) & (np.abs(pr.chainage - c) <= 0.75 * width + 1.0)
             if len(sel) < 2000 or rsel.sum() < 2000:
-                rows.append(np.eye(4))
+                rows.append(None)  # no estimate: the blocks beside it, or the points near
                 continue
             pick = sel if len(sel) <= sample else rng.choice(sel, sample, replace=False)
             t = icp_plane(rp[rsel], cmp_xyz[pick], np.eye(4), voxel=voxel,
@@ -557,6 +588,8 @@ def correct_drift(
             rows.append(t)
         # blend the blocks' displacements with hat functions on the block centres
         for k, (c, t) in enumerate(zip(centres, rows, strict=True)):
+            if t is None:
+                continue
             up = np.clip((s - centres[k - 1]) / (c - centres[k - 1]), 0, 1) if k > 0 \
                 else np.ones_like(s)
             down = np.clip((centres[k + 1] - s) / (centres[k + 1] - c), 0, 1) \
@@ -568,13 +601,14 @@ def correct_drift(
             wsum[mc[m]] += w[m]
         info["edges"][str(e.id)] = {
             "block_centres_m": centres.tolist(),
-            "block_shift_m": [float(np.linalg.norm(
+            "block_shift_m": [None if t is None else float(np.linalg.norm(
                 apply_transform(t, e.centerline.point_at(c))[0] - e.centerline.point_at(c)[0]))
                 for c, t in zip(centres, rows, strict=True)],
         }
     ok = wsum > 0
-    out = cmp_xyz.copy()
-    out[ok] += disp[ok] / wsum[ok, None]
+    disp[ok] /= wsum[ok, None]
+    _borrow(cmp_xyz, disp, ok, reach=block)
+    out = cmp_xyz + disp
     probe = rng.choice(len(cmp_xyz), min(len(cmp_xyz), 200_000), replace=False)
     before = _plane_residual(tree, rn, rp, cmp_xyz[probe], max_distance)
     after = _plane_residual(tree, rn, rp, out[probe], max_distance)
