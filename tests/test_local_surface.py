@@ -186,15 +186,9 @@ def test_a_bulge_behind_pipes_is_not_read_from_a_plane_that_does_not_pass_there(
     interpolation between cores already asks) is not its surface: no value there."""
     a = 0.041
     length = 20.0
-    spec = PairSpec(
-        tunnel=TunnelSpec(length=length, noise_sigma=0.018, density=204.0, equipment=True,
-                          section=SectionSpec("arch", 4.7, 2.5)),
-        deformations=(DeformationSpec(kind="wall_bulge", chainage=10.0, length=3.0, width=1.2,
-                                      amplitude=a),),
-        cmp_shift=0.0,
-        seed=seed,
-    )
-    pair = make_pair(spec)
+    bulge = DeformationSpec(kind="wall_bulge", chainage=10.0, length=3.0, width=1.2, amplitude=a)
+    pair = _pair(noise=0.018, deformations=[bulge], seed=seed, length=length, density=204.0,
+                 equipment=True, section=SectionSpec("arch", 4.7, 2.5))
     tr = pair.truth
     r = _run(pair)
     cmp_ = tr.cmp_xyz_in_ref
