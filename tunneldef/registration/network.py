@@ -482,6 +482,9 @@ def _plane_residual(ref_tree: cKDTree, normals: np.ndarray, ref_pts: np.ndarray,
     return out
 
 
+_BORROW_CHUNK = 1_000_000
+
+
 def _borrow(xyz: np.ndarray, disp: np.ndarray, known: np.ndarray, *, reach: float,
             k: int = 8, step: float = 0.25) -> None:
     """Give the points without a drift estimate of their own (``~known``: on an edge, or a
@@ -500,13 +503,17 @@ def _borrow(xyz: np.ndarray, disp: np.ndarray, known: np.ndarray, *, reach: floa
     cell = np.floor(xyz[have] / step).astype(np.int64)
     _, first = np.unique(cell, axis=0, return_index=True)
     src = have[first]
-    dist, j = cKDTree(xyz[src]).query(xyz[lost], k=min(k, src.size), distance_upper_bound=reach)
-    dist, j = dist.reshape(len(lost), -1), j.reshape(len(lost), -1)
-    found = np.isfinite(dist)
-    n = found.sum(axis=1)
-    got = n > 0
-    vals = disp[src[np.where(found, j, 0)]] * found[:, :, None]
-    disp[lost[got]] = vals[got].sum(axis=1) / n[got, None]
+    tree = cKDTree(xyz[src])
+    k = min(k, src.size)
+    for a in range(0, lost.size, _BORROW_CHUNK):  # (chunk, k, 3) at a time
+        part = lost[a:a + _BORROW_CHUNK]
+        dist, j = tree.query(xyz[part], k=k, distance_upper_bound=reach)
+        dist, j = dist.reshape(len(part), k), j.reshape(len(part), k)
+        found = np.isfinite(dist)
+        n = found.sum(axis=1)
+        got = n > 0
+        vals = disp[src[np.where(found, j, 0)]] * found[:, :, None]
+        disp[part[got]] = vals[got].sum(axis=1) / n[got, None]
 
 
 def correct_drift(
@@ -528,7 +535,7 @@ def correct_drift(
     change such as a sag, a bulge or a heave is a small part of a block's shell and outside
     the match distance where it is large). The blocks' displacements are blended linearly along
     the chainage between block centres, so the correction is continuous along each edge. A
-    block with too few points gets no estimate and its stretch follows the blocks beside it;
+    block with too few points gets no estimate, and the blend runs between the blocks beside it;
     points with no block at all (an edge too thin for one, like the main drift's floor at the
     mouth of a cross-cut the compared walker did not enter) take their nearest corrected
     neighbours' displacement within a block's length (:func:`_borrow`).
@@ -586,14 +593,15 @@ def correct_drift(
             t = icp_plane(rp[rsel], cmp_xyz[pick], np.eye(4), voxel=voxel,
                           max_distance=max_distance, iterations=30, ref_normals=rn[rsel])
             rows.append(t)
-        # blend the blocks' displacements with hat functions on the block centres
-        for k, (c, t) in enumerate(zip(centres, rows, strict=True)):
-            if t is None:
-                continue
-            up = np.clip((s - centres[k - 1]) / (c - centres[k - 1]), 0, 1) if k > 0 \
+        # blend the blocks' displacements with hat functions on the centres of the blocks
+        # that have one (a block without: the linear blend of those on either side)
+        est = [(c, t) for c, t in zip(centres, rows, strict=True) if t is not None]
+        at = [c for c, _ in est]
+        for k, (c, t) in enumerate(est):
+            up = np.clip((s - at[k - 1]) / (c - at[k - 1]), 0, 1) if k > 0 \
                 else np.ones_like(s)
-            down = np.clip((centres[k + 1] - s) / (centres[k + 1] - c), 0, 1) \
-                if k + 1 < len(centres) else np.ones_like(s)
+            down = np.clip((at[k + 1] - s) / (at[k + 1] - c), 0, 1) \
+                if k + 1 < len(at) else np.ones_like(s)
             w = np.where(s <= c, up, down)
             m = w > 0
             p = cmp_xyz[mc[m]]
