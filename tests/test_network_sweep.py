@@ -33,8 +33,8 @@ def test_a_bulge_behind_a_pipe_is_read_within_its_stated_lod() -> None:
     arch (204 points/m^2, +-1.8 cm). Each cylinder there holds the rock that moved and the pipe
     that did not, and reads the change times the rock's share (x0.33); its LoD95 took the
     cylinder's spread (30-36 mm against a typical 18 mm) for noise averaged over ~100 points
-    (10.7 mm) and the case was wrong with exit 0. The spread beyond one surface's now bounds
-    that bias in the LoD95."""
+    (10.7 mm) and the case was wrong with exit 0. The spread beyond one surface's is now
+    added to the LoD95 as an allowance for that bias."""
     case = run_case(draw(16000002, 400_000))
     assert case.outcome == "correct", table([case])
 

@@ -473,9 +473,10 @@ def _reject_narrow(records: list[SliceRecord], c: CenterlineConfig, min_slices: 
         spread = 1.4826 * float(np.median(np.abs(v - med)))
         jump = c.max_width_jump if key == "width" else c.max_height_jump
         limit = min(jump, c.narrow_sigmas * spread)
-        bad = np.abs(v - med) > limit
         if key == "width":  # wider: only where the centre would move by more than noise
-            bad &= (med - v > limit) | (v - med > max(limit, _WIDER_FLOOR))
+            bad = (med - v > limit) | (v - med > max(limit, _WIDER_FLOOR))
+        else:
+            bad = np.abs(v - med) > limit
         verdicts.append((key, v, med, bad))
     for i, r in enumerate(ok):
         for key, v, med, bad in verdicts:

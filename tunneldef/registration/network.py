@@ -483,10 +483,11 @@ def _plane_residual(ref_tree: cKDTree, normals: np.ndarray, ref_pts: np.ndarray,
 
 
 _BORROW_CHUNK = 1_000_000
+_BORROW_SOURCES = 200_000
 
 
 def _borrow(xyz: np.ndarray, disp: np.ndarray, known: np.ndarray, *, reach: float,
-            k: int = 8, step: float = 0.25) -> None:
+            k: int = 8) -> None:
     """Give the points without a drift estimate of their own (``~known``: on an edge, or a
     stretch of one, with too few points for a block, such as the mouth of a cross-cut the
     other epoch did not walk, whose points lie nearest its axis) the mean displacement of the
@@ -494,15 +495,15 @@ def _borrow(xyz: np.ndarray, disp: np.ndarray, known: np.ndarray, *, reach: floa
 
     Drift is smooth in space: left uncorrected, those points kept the rigid pose while the
     main drift around them moved by the correction (14 mm at a junction), and read it as
-    change. Thinned to one point per ``step`` cube first, metres.
+    change. The neighbours are drawn from every n-th corrected point, at most
+    ``_BORROW_SOURCES`` of them (a smooth field needs no more, and no pass over the survey
+    beyond the stride).
     """
     lost = np.flatnonzero(~known)
     have = np.flatnonzero(known)
     if lost.size == 0 or have.size == 0:
         return
-    cell = np.floor(xyz[have] / step).astype(np.int64)
-    _, first = np.unique(cell, axis=0, return_index=True)
-    src = have[first]
+    src = have[:: max(1, have.size // _BORROW_SOURCES)]
     tree = cKDTree(xyz[src])
     k = min(k, src.size)
     for a in range(0, lost.size, _BORROW_CHUNK):  # (chunk, k, 3) at a time
