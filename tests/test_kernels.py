@@ -95,3 +95,45 @@ def test_cylinder_stats_equal_the_numpy_formulation(seed: int, trim_z: float) ->
         via = cylinders._epoch_stats(epoch, cores, normals, radius, depth)
         for g, w in zip(via, got, strict=True):
             np.testing.assert_array_equal(g, w)
+
+
+def test_slide_kernels_equal_the_numpy_formulation() -> None:
+    # the along-axis slide's two compiled loops give what an argpartition over the candidates
+    # (bit for bit) and the gathered point-to-plane residuals (to the last bits) give
+    from tunneldef.registration.kernels import nearest_two, slide_residuals
+
+    rng = np.random.default_rng(3)
+    m, k, n = 5_000, 8, 3_000
+    a = rng.uniform(0.0, 0.09, (m, k))
+    a[rng.random((m, k)) < 0.1] = np.inf  # candidates out of reach
+    a[:50] = np.inf  # points with none at all
+    a[50:60, 1] = a[50:60, 0]  # exact ties
+    b = rng.normal(0.0, 0.2, (m, k))
+    for step in (0.0, 0.0031, -0.02):
+        dmin, second, best = nearest_two(a, b, step)
+        d2 = a + step * (b + step)
+        order = np.argpartition(d2, 1, axis=1)[:, :2]
+        two = np.sqrt(np.maximum(np.take_along_axis(d2, order, axis=1), 0.0))
+        np.testing.assert_array_equal(dmin, two[:, 0])
+        np.testing.assert_array_equal(second, two[:, 1])
+        finite = np.isfinite(dmin)
+        # the chosen column holds the smallest value (which of tied columns is immaterial)
+        np.testing.assert_array_equal(d2[np.arange(m), best][finite], d2.min(axis=1)[finite])
+    assert np.isinf(dmin[:50]).all() and (best[:50] == 0).all()
+
+    xyz, tan = rng.normal(size=(m, 3)), rng.normal(size=(m, 3))
+    tan /= np.linalg.norm(tan, axis=1, keepdims=True)
+    ref = rng.normal(size=(n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    ref_pn = np.hstack([ref, nrm])
+    j = rng.integers(0, n, m)
+    ok = rng.random(m) < 0.7
+    delta = 0.0123
+    r, a_n = slide_residuals(xyz, tan, ref_pn, np.flatnonzero(ok), j, delta)
+    matched = ref_pn[j[ok]]
+    want_r = np.einsum("ij,ij->i", matched[:, 3:], xyz[ok] + delta * tan[ok] - matched[:, :3])
+    want_a = np.einsum("ij,ij->i", matched[:, 3:], tan[ok])
+    # einsum's own order of the three products is unspecified: equal to the last bits
+    np.testing.assert_allclose(r, want_r, rtol=4e-16, atol=4e-16)
+    np.testing.assert_allclose(a_n, want_a, rtol=4e-16, atol=4e-16)

@@ -24,7 +24,9 @@ from typing import Any
 from .errors import TunnelDefError
 from .progress import ProgressCallback, notify
 
-__all__ = ["Engine", "EngineError", "open_engine", "release_memory", "limit_malloc_arenas"]
+__all__ = [
+    "Engine", "EngineError", "open_engine", "release_memory", "limit_malloc_arenas", "thread_map",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -71,6 +73,49 @@ def limit_malloc_arenas(arenas: int = 2) -> None:
     libc = _glibc()
     if libc is not None:
         libc.mallopt(-8, int(arenas))  # M_ARENA_MAX
+
+
+def thread_map(
+    fn: Callable[..., Any],
+    args: Sequence[tuple[Any, ...]],
+    *,
+    threads: int | None = None,
+    stage: str = "",
+    progress: ProgressCallback | None = None,
+    after_task: Callable[[], None] | None = None,
+) -> list[Any]:
+    """``[fn(*a) for a in args]`` on Dask's local threaded scheduler, results in order.
+
+    For many small tasks of one process that spend their time in NumPy, SciPy and
+    scikit-image (which release the GIL): the slices of a centreline pass. ``threads``
+    defaults to the machine's cores; with one thread, or one task, the tasks run in the
+    calling thread, in order. ``progress(stage, fraction)`` is called from the calling
+    thread as tasks finish; ``after_task`` after each task (e.g. :func:`release_memory`).
+    """
+    n = len(args)
+    threads = max(int(threads if threads is not None else (os.cpu_count() or 1)), 1)
+    if threads == 1 or n <= 1:
+        out = []
+        for i, a in enumerate(args):
+            out.append(fn(*a))
+            if after_task is not None:
+                after_task()
+            notify(progress, stage, (i + 1) / max(n, 1))
+        return out
+    import dask
+    from dask.callbacks import Callback
+
+    tasks = [dask.delayed(fn, pure=False)(*a) for a in args]
+    state = {"done": 0}
+
+    def posttask(key, result, dsk, state_, worker_id):  # noqa: ARG001
+        if after_task is not None:
+            after_task()
+        state["done"] += 1
+        notify(progress, stage, min(state["done"] / n, 1.0))
+
+    with Callback(posttask=posttask):
+        return list(dask.compute(*tasks, scheduler="threads", num_workers=threads))
 
 
 class EngineError(TunnelDefError):
@@ -147,20 +192,8 @@ class Engine:
         return out
 
     def _map_local(self, fn, args, stage, progress):
-        import dask
-        from dask.callbacks import Callback
-
-        n = len(args)
-        tasks = [dask.delayed(fn, pure=False)(*a) for a in args]
-        state = {"done": 0}
-
-        def posttask(key, result, dsk, state_, worker_id):  # noqa: ARG001
-            release_memory()
-            state["done"] += 1
-            notify(progress, stage, min(state["done"] / n, 1.0))
-
-        with Callback(posttask=posttask):
-            return list(dask.compute(*tasks, scheduler="threads", num_workers=self.threads))
+        return thread_map(fn, args, threads=self.threads, stage=stage, progress=progress,
+                          after_task=release_memory)
 
     def close(self) -> None:
         """Close the client and any cluster this engine started."""

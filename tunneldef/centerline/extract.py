@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 from ..cloud import check_points
 from ..config import CenterlineConfig, SlicingConfig
 from ..curve import Centerline, Projection
+from ..engine import thread_map
 from ..errors import NotATunnelError
 from ..frame import TunnelFrame, principal_frame
 from ..progress import ProgressCallback, notify
@@ -343,17 +344,21 @@ def _slice_pass(
     leans: tuple[float, float] = (0.0, 0.0),
 ) -> list[SliceRecord]:
     slices = slice_along_axis(local[:, 0], step=slicing.step, thickness=slicing.thickness)
-    records = []
-    for i, sl in enumerate(slices):
-        rec = SliceRecord(station=sl.station, n_points=len(sl.index))
-        records.append(rec)
-        notify(progress, stage, i / max(len(slices), 1))
-        if rec.n_points < slicing.min_points:
-            rec.reason = f"too few points ({rec.n_points} < {slicing.min_points})"
-            continue
-        rf, walls, _ = analyse_slice(
-            local[sl.index], sl.station, slicing=slicing, settings=settings, leans=leans
-        )
+    records = [SliceRecord(station=sl.station, n_points=len(sl.index)) for sl in slices]
+    todo = [i for i, rec in enumerate(records) if rec.n_points >= slicing.min_points]
+    for i in set(range(len(records))) - set(todo):
+        records[i].reason = f"too few points ({records[i].n_points} < {slicing.min_points})"
+
+    def one(i: int) -> tuple[RoofFloor, WallLines | None, np.ndarray]:
+        return analyse_slice(local[slices[i].index], slices[i].station, slicing=slicing,
+                             settings=settings, leans=leans)
+
+    # slices are independent: Dask's threads run them side by side (the image work releases
+    # the GIL); the records are filled in slice order, so the result is the serial one
+    notify(progress, stage, 0.0)
+    results = thread_map(one, [(i,) for i in todo], stage=stage, progress=progress)
+    for i, (rf, walls, _) in zip(todo, results, strict=True):
+        rec = records[i]
         if not record_lines(rec, rf, walls):
             continue
         rec.width, rec.height = rec.left - rec.right, rec.roof - rec.floor

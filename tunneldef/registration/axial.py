@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 
 from ..curve import Centerline
 from ..spatial import query_workers
+from .kernels import nearest_two, slide_residuals
 
 __all__ = ["AxialShift", "coarse_shift", "fine_shift", "noise_kernel", "section_image"]
 
@@ -254,12 +255,9 @@ class _SlidingNearest:
             raise ValueError(f"bound {bound} beyond the candidates' reach {self.reach}")
         for attempt in range(2):
             step = delta - self.delta0
-            d2 = self.a + step * (self.b + step)
-            order = np.argpartition(d2, 1, axis=1)[:, :2]  # the nearest two, in order
-            best = order[:, 0]
+            # the nearest two of each point's candidates, ascending (one compiled pass)
+            dmin, second, best = nearest_two(self.a, self.b, step)
             rows = np.arange(len(best))
-            two = np.sqrt(np.maximum(np.take_along_axis(d2, order, axis=1), 0.0))
-            dmin, second = two[:, 0], two[:, 1]
             free = self.dk - abs(step)  # no point outside the set is nearer than this
             # the tree's own rounding decides near-ties and points near the bound
             eps = self._EPS
@@ -330,6 +328,8 @@ def fine_shift(
         ``shift`` along ``tangents``, metres.
     """
     tree = tree if tree is not None else cKDTree(ref_xyz)
+    cmp_xyz = np.asarray(cmp_xyz, dtype=np.float64)
+    tangents = np.asarray(tangents, dtype=np.float64)
     reach = 1.5 * max(kernels) + _SlidingNearest.MARGIN
     nearest = _SlidingNearest(tree, ref_xyz, cmp_xyz, tangents, reach)
     ref_pn = np.hstack([ref_xyz, ref_normals]).astype(np.float64, copy=False)
@@ -345,11 +345,7 @@ def fine_shift(
             ok = np.isfinite(d)
             if ok.sum() < 20:
                 return AxialShift(0.0, float("inf"), False, 0)
-            matched = ref_pn[j[ok]]  # one gather of point and normal
-            n = matched[:, 3:]
-            t_ok = tangents[ok]
-            r = np.einsum("ij,ij->i", n, cmp_xyz[ok] + delta * t_ok - matched[:, :3])
-            a = np.einsum("ij,ij->i", n, t_ok)
+            r, a = slide_residuals(cmp_xyz, tangents, ref_pn, np.flatnonzero(ok), j, delta)
             w = np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
             info = float(np.sum(w * a * a))
             if info <= 1e-9:
