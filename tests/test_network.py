@@ -214,6 +214,12 @@ def test_a_single_tube_run_refuses_a_network_at_once(pair, tmp_path, capsys,  # 
     topo = plan_topology(pair.ref.xyz)
     assert topo.junctions == 2 and len(topo.lengths) == 3
     assert topo.lengths[0] > 30.0  # the 40 m main drift, through its crossing
+    # asked again of the same array, the answer is remembered; of a copy moved in place, not
+    assert plan_topology(pair.ref.xyz) is topo
+    moved = pair.ref.xyz.copy()
+    assert plan_topology(moved) == topo and plan_topology(moved) is not topo
+    moved[:, :2] *= 2.0  # the plan twice as large, in place
+    assert plan_topology(moved).lengths[0] > 1.8 * topo.lengths[0]
     paths = write_epochs(pair.ref, pair.cmp, tmp_path, "ply")
     out = tmp_path / "out.ply"
     code = main(["detect", str(paths["ref"]), str(paths["cmp"]), "-o", str(out), "--quiet",

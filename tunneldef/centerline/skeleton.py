@@ -22,7 +22,10 @@ three steps share the pixel graph.
 
 from __future__ import annotations
 
+import threading
+import weakref
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -559,8 +562,46 @@ def plan_topology(
 
     A plan that cannot be read (drifts above one another, a footprint with no interior) is
     reported in ``reason``, not raised: this is a question asked before the real work.
+
+    The answer is remembered for the same array (while it lives, and as long as a sample of
+    its rows reads the same): ``detect`` asks it once to choose between one drift and a
+    network, and again for its checks.
     """
     nc = network or NetworkConfig()
+    key = _memo_key(xyz, nc, max_points)
+    if key is not None:
+        with _MEMO_LOCK:
+            hit = _MEMO.get(id(xyz))
+        if hit is not None and hit[0]() is xyz and hit[1] == key:
+            return hit[2]
+    topo = _plan_topology(xyz, nc, max_points)
+    if key is not None:
+        with _MEMO_LOCK:
+            _MEMO[id(xyz)] = (weakref.ref(xyz), key, topo)
+            while len(_MEMO) > _MEMO_SIZE:
+                del _MEMO[next(iter(_MEMO))]
+    return topo
+
+
+# id(array) -> (weak reference to it, _memo_key, answer); a weak reference that no longer
+# points at the array means the id was reused by another
+_MEMO: dict[int, tuple[Any, tuple, PlanTopology]] = {}
+_MEMO_LOCK = threading.Lock()
+_MEMO_SIZE = 8
+_MEMO_SAMPLE = 65_536  # rows read to tell an array changed in place
+
+
+def _memo_key(xyz: Any, nc: NetworkConfig, max_points: int) -> tuple | None:
+    """What :func:`plan_topology`'s answer for ``xyz`` depends on (``None``: not an array
+    that can be remembered)."""
+    if not isinstance(xyz, np.ndarray):
+        return None
+    step = max(1, len(xyz) // _MEMO_SAMPLE)
+    sample = np.ascontiguousarray(xyz[::step]).tobytes()
+    return (nc, max_points, xyz.shape, xyz.dtype.str, hash(sample))
+
+
+def _plan_topology(xyz: np.ndarray, nc: NetworkConfig, max_points: int) -> PlanTopology:
     pts = np.asarray(xyz, dtype=np.float64)
     if len(pts) > max_points:
         pts = pts[random_keep(len(pts), max_points / len(pts))]

@@ -6,8 +6,9 @@ point-to-plane residual of each matched point. In NumPy the same work is an ``ar
 two gathers and a handful of whole-array temporaries per Gauss-Newton step; here it is one pass
 over each point's own candidates. The distances are bit for bit those of the NumPy
 formulation; the residuals equal its ``einsum`` to the last bits (NumPy does not fix the order
-of the three products); ``tests/test_kernels.py`` holds both to that. Compiled once per machine and cached beside the module (``cache=True``); serial, so
-that it runs the same in Dask's threads and in CloudCompare's.
+of the three products); ``tests/test_kernels.py`` holds both to that. Compiled once per
+machine and cached beside the module (``cache=True``); serial, so that it runs the same in
+Dask's threads and in CloudCompare's.
 """
 
 from __future__ import annotations
