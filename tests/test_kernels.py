@@ -137,3 +137,46 @@ def test_slide_kernels_equal_the_numpy_formulation() -> None:
     # einsum's own order of the three products is unspecified: equal to the last bits
     np.testing.assert_allclose(r, want_r, rtol=4e-16, atol=4e-16)
     np.testing.assert_allclose(a_n, want_a, rtol=4e-16, atol=4e-16)
+
+
+def _numpy_project(cl, p):
+    """The foot points as whole-array NumPy passes (the formulation the kernel replaced)."""
+    t, lat, ver = cl._frames()
+    _, i = cl._tree().query(p)
+    u = np.einsum("ij,ij->i", p - cl.points[i], t[i])
+    s = cl.chainage[i] + u
+    j = np.clip(np.round(np.interp(s, cl.chainage, np.arange(len(cl.chainage)))), 0,
+                len(cl.chainage) - 1).astype(np.intp)
+    d = p - cl.points[j]
+    u = np.einsum("ij,ij->i", d, t[j])
+    d -= u[:, None] * t[j]
+    scale = 1.0 - np.einsum("ij,ij->i", d, cl._curvature()[j])
+    beyond = ((j == 0) & (u < 0)) | ((j == len(cl.chainage) - 1) & (u > 0))
+    scale[beyond] = 1.0
+    s = cl.chainage[j] + u / np.maximum(scale, 0.1)
+    return s, np.einsum("ij,ij->i", d, lat[j]), np.einsum("ij,ij->i", d, ver[j]), j
+
+
+def test_projection_kernel_equals_the_numpy_formulation() -> None:
+    # a bend, points around it and beyond both ends, some exactly on samples and half-way
+    # between two (where the rounding to the nearest sample must match NumPy's)
+    from tunneldef.curve import Centerline
+    from tunneldef.curve_kernels import _sample_index
+
+    a = np.linspace(0.0, np.pi / 2, 400)
+    cl = Centerline.from_polyline(np.c_[30 * np.sin(a), 30 * (1 - np.cos(a)), 0.02 * a * 30],
+                                  step=0.05)
+    rng = np.random.default_rng(5)
+    s0 = rng.uniform(-3.0, cl.length + 3.0, 20_000)
+    pts = cl.point_at(s0) + rng.normal(0.0, 1.5, (20_000, 3))
+    pts[:50] = cl.points[rng.integers(0, len(cl.points), 50)]
+    got = cl.project(pts)
+    s, lateral, vertical, j = _numpy_project(cl, pts)
+    np.testing.assert_allclose(got.chainage, s, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.lateral, lateral, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.vertical, vertical, rtol=0, atol=1e-12)
+    ch = cl.chainage
+    probe = np.r_[ch[[0, 1, -2, -1]], 0.5 * (ch[:-1] + ch[1:]), -1.0, ch[-1] + 1.0,
+                  rng.uniform(0.0, cl.length, 2000)]
+    want = np.clip(np.round(np.interp(probe, ch, np.arange(len(ch)))), 0, len(ch) - 1)
+    assert [_sample_index(x, ch) for x in probe] == want.astype(int).tolist()

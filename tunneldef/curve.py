@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .cloud import check_points
+from .curve_kernels import foot_points
 from .errors import NotATunnelError
 from .spatial import query_workers
 from .transforms import apply_transform
@@ -183,30 +184,15 @@ class Centerline:
         centimetres the remaining error is of the order of ``step**2 * curvature``, far below a
         millimetre.
         """
-        p = np.asarray(xyz, dtype=np.float64)
+        p = np.ascontiguousarray(xyz, dtype=np.float64)
         t, lat, ver = self._frames()
         _, i = self._tree().query(p, workers=query_workers(len(p), workers))
-        d = p - self.points[i]
-        u = np.einsum("ij,ij->i", d, t[i])
-        s = self.chainage[i] + u
-        # re-anchor on the sample nearest to the foot point, then measure offsets there
-        j = np.clip(
-            np.round(np.interp(s, self.chainage, np.arange(len(self.chainage)))),
-            0,
-            len(self.chainage) - 1,
-        ).astype(np.intp)
-        d = p - self.points[j]
-        u = np.einsum("ij,ij->i", d, t[j])
-        d -= u[:, None] * t[j]
-        scale = 1.0 - np.einsum("ij,ij->i", d, self._curvature()[j])
-        # beyond the ends the curve goes on straight along its end tangents: no bend to
-        # correct for (scaling there stretched the chainage of every point past a curved end,
-        # and re-slicing along such a curve ran away)
-        beyond = ((j == 0) & (u < 0)) | ((j == len(self.chainage) - 1) & (u > 0))
-        scale[beyond] = 1.0
-        s = self.chainage[j] + u / np.maximum(scale, 0.1)
-        lateral = np.einsum("ij,ij->i", d, lat[j])
-        vertical = np.einsum("ij,ij->i", d, ver[j])
+        # slide from the nearest sample to the foot point, re-anchor on the sample nearest to
+        # it and measure the offsets there (one compiled pass, :mod:`.curve_kernels`)
+        s, lateral, vertical = foot_points(
+            p, np.asarray(i, dtype=np.int64), self.points, self.chainage, t, lat, ver,
+            self._curvature(),
+        )
         return Projection(
             chainage=s,
             lateral=lateral,
