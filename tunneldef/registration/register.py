@@ -15,6 +15,7 @@ and the refinement live in their own modules.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -25,6 +26,7 @@ from scipy.spatial import cKDTree
 from ..cloud import check_points
 from ..config import RegistrationConfig
 from ..curve import Centerline
+from ..engine import thread_map
 from ..errors import NotATunnelError, RegistrationError
 from ..frame import TunnelFrame, principal_frame
 from ..progress import ProgressCallback, notify
@@ -208,8 +210,8 @@ def _best_candidate(
     if method != "centerline":
         # the baselines start from the coarse candidate a quick rough ICP likes best
         flips = [_best_flip(flips, f_cmp, ctx.ref_l, ctx.cmp_s, ctx.ref_tree)]
-    candidates = []
-    for q, flip in flips:
+
+    def candidate(q: int, flip: np.ndarray) -> tuple:
         second: dict[str, np.ndarray] = {}  # world stages of the common-stretch pass
         coarse = flip @ f_cmp
         cmp_l = apply_transform(coarse, ctx.cmp_s)
@@ -228,6 +230,7 @@ def _best_candidate(
                     or 0.5 * (ctx.ref_cl.length + ctx.cmp_cl.length),
                     ref_normals=ctx.ref_n,
                     axial_points=_axial_points(ctx.ref_cl, rc),
+                    ref_tree=ctx.ref_tree,
                 )
                 local, stages, info = fine.transform, fine.stages, dict(fine.info)
                 info["axial_uncertainty"] = fine.axial_uncertainty
@@ -242,8 +245,7 @@ def _best_candidate(
                 stages, info, stage_t = {method: local}, {}, {}
         except RegistrationError as exc:
             logger.info("direction candidate %d rejected: %s", q, exc)
-            candidates.append((-1.0, np.inf, q, None, str(exc)))
-            continue
+            return (-1.0, np.inf, q, None, str(exc))
         moved = apply_transform(local, cmp_l)
         d, _ = ctx.ref_tree.query(moved, workers=query_workers(len(moved)))
         # ranked by the evidence of all compared points: inside the reference's stretch one
@@ -256,8 +258,14 @@ def _best_candidate(
         score = _overlap_evidence(d, moved, ctx.ref_cl, ctx.ref_l)
         fit = fitness(d)
         stage_t[method if method != "centerline" else "fine"] = time.perf_counter() - t0
-        candidates.append((score, fit, q, (coarse, local, stages, info, stage_t, second), ""))
-        notify(ctx.progress, "registration", 0.5 + 0.2 * (q + 1) / len(flips))
+        return (score, fit, q, (coarse, local, stages, info, stage_t, second), "")
+
+    # the direction candidates are independent: Dask's local threads run them side by side
+    candidates = thread_map(
+        candidate, flips, threads=min(len(flips), os.cpu_count() or 1), stage="registration",
+        progress=(None if ctx.progress is None
+                  else lambda _stage, f: notify(ctx.progress, "registration", 0.5 + 0.2 * f)),
+    )
     ok = [c for c in candidates if c[3] is not None]
     if not ok:
         raise RegistrationError(f"the epochs could not be registered: {candidates[0][4]}")
@@ -315,6 +323,7 @@ def _common_stretch(
             ref_normals=ctx.ref_n,
             common=common,
             axial_points=_axial_points(ctx.ref_cl, ctx.rc),
+            ref_tree=ctx.ref_tree,
         )
         local = fine.transform @ local
         world_stages["common_stretch"] = f_ref_inv @ local @ coarse

@@ -38,9 +38,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..curve import Centerline
+from ..engine import thread_map
 from ..spatial import random_subset
 from ..transforms import apply_transform
-from .axial import _mismatch, coarse_shift, noise_kernel, section_image
+from .axial import AxialShift, _mismatch, coarse_shift, noise_kernel, section_image
 from .views import axial_correction, normals
 
 __all__ = [
@@ -464,33 +465,42 @@ def verify_registration(
     # slide then moved by centimetres with the rounding of the input coordinates
     slide_points = max(60_000, min(len(cmp), int(points_per_metre * length)))
     ref_n = normals(ref, _NORMAL_RADIUS)
+    # the same slide with normals over twice the radius: a real surface across the axis gives
+    # the same answer at both scales, relief drowned in noise does not (a 2.8 m drift with
+    # 1.9 cm relief under 2.9 cm noise: 0 vs 8.7 cm, where the registration was 7.5 cm off)
+    wide_n = normals(ref, 2 * _NORMAL_RADIUS)
     # every slide below runs on the same reference points, most on the same compared ones
     same = {"tree": cKDTree(ref), "chainage": cl.project(cmp).chainage}
-    _, fine = axial_correction(ref, ref_n, cmp, cl, slide_points, **same)
-    # started 2 cm either side of the registered position, the same slide must end where it
-    # ends from there: a sparse, noisy rough-rock pair registered 11.9 mm off read a remaining
-    # slide of 0.3 mm, and ended at -10.8 and +12.5 mm from starts 2 cm off (it had stuck)
     tan = cl.frame_at(same["chainage"])[0]
-    probes = []
-    for side in (-1.0, 1.0):
-        _, p = axial_correction(ref, ref_n, cmp + side * _PROBE * tan, cl, slide_points,
-                                tree=same["tree"])
-        probes.append(side * _PROBE + p.shift if p.informative else np.nan)
+    slides = [
+        (ref_n, cmp, True, same),
+        # started 2 cm either side of the registered position, the same slide must end where
+        # it ends from there: a sparse, noisy rough-rock pair registered 11.9 mm off read a
+        # remaining slide of 0.3 mm, and ended at -10.8 and +12.5 mm from starts 2 cm off
+        # (it had stuck)
+        (ref_n, cmp - _PROBE * tan, True, {"tree": same["tree"]}),
+        (ref_n, cmp + _PROBE * tan, True, {"tree": same["tree"]}),
+        (wide_n, cmp, True, same),
+        # and both scales with the kernel narrowing to 5 cm whatever the noise: the noise-wide
+        # kernel is the unbiased one under heavy noise (+-29 mm: 11 mm off with the narrow
+        # one), but on relief alone the narrow one saw a 13.8 mm misplacement the wide one
+        # read as 7 mm
+        (ref_n, cmp, False, same),
+        (wide_n, cmp, False, same),
+    ]
+
+    def slide(n: np.ndarray, pts: np.ndarray, floor: bool, reuse: dict) -> AxialShift:
+        return axial_correction(ref, n, pts, cl, slide_points, noise_floor=floor, **reuse)[1]
+
+    # independent slides: Dask's local threads run them side by side
+    fine, low, high, wide, *narrow = thread_map(slide, slides)
+    probes = [side * _PROBE + p.shift if p.informative else np.nan
+              for side, p in ((-1.0, low), (1.0, high))]
     # nothing to judge when the slide itself found no surface across the axis; a start 2 cm
     # off that finds none is as bad as one that sticks
     ends = np.array([fine.shift, *probes])
     spread = (float(np.ptp(ends)) if np.all(np.isfinite(ends)) else np.inf) \
         if fine.informative else np.nan
-    # the same slide with normals over twice the radius: a real surface across the axis gives
-    # the same answer at both scales, relief drowned in noise does not (a 2.8 m drift with
-    # 1.9 cm relief under 2.9 cm noise: 0 vs 8.7 cm, where the registration was 7.5 cm off)
-    wide_n = normals(ref, 2 * _NORMAL_RADIUS)
-    _, wide = axial_correction(ref, wide_n, cmp, cl, slide_points, **same)
-    # and both with the kernel narrowing to 5 cm whatever the noise: the noise-wide kernel is
-    # the unbiased one under heavy noise (+-29 mm: 11 mm off with the narrow one), but on
-    # relief alone the narrow one saw a 13.8 mm misplacement the wide one read as 7 mm
-    narrow = [axial_correction(ref, n, cmp, cl, slide_points, noise_floor=False, **same)[1]
-              for n in (ref_n, wide_n)]
     scales = (
         abs(fine.shift - wide.shift) / float(np.hypot(fine.uncertainty, wide.uncertainty))
         if fine.informative and wide.informative

@@ -292,6 +292,7 @@ def align_views(
     common: tuple[float, float] | None = None,
     plan_iterations: int = 2,
     axial_points: int = 60_000,
+    ref_tree: cKDTree | None = None,
 ) -> ViewsResult:
     """Stages 2-4 of the centreline registration (paper §3.2.2-3.2.4).
 
@@ -317,6 +318,8 @@ def align_views(
     axial_points : int
         Most compared points of the point-to-plane slide along the axis (a random sample);
         long tunnels want more, so that the few surfaces facing along the axis keep enough.
+    ref_tree : cKDTree, optional
+        A KD-tree of ``ref_xyz`` (built when not given).
 
     Returns
     -------
@@ -401,7 +404,7 @@ def align_views(
     out.info["axial_coarse_shift"] = coarse
     out.info["axial_coarse_spread"] = spread
     ref_n = ref_normals if ref_normals is not None else normals(ref_xyz)
-    tree = cKDTree(ref_xyz)
+    tree = ref_tree if ref_tree is not None else cKDTree(ref_xyz)
     shift = None
     for _ in range(plan_iterations):
         moved = apply_transform(total, cmp_xyz)
