@@ -1,12 +1,15 @@
 """Whole-process time and peak memory of `tunneldef detect` against CloudCompare's C2C.
 
-Usage: python benchmarks/scale.py [--rows 60,350,1000] [--keep DIR [--reuse]] [-- detect options]
+Usage: python benchmarks/scale.py [--rows 60,350,1000] [--keep DIR [--reuse]]
+       [--cloudcompare EXE] [-- detect options]
 
 Each row: a synthetic pair (``tunneldef.synth``: chamber, equipment, conveyor, rough rock, a
 30 mm roof sag; the compared epoch moved by a rigid motion) of the given length at the
 handheld scanner's density, written in the row's format. ``tunneldef detect REF CMP -o OUT``
-runs as its own process; then CloudCompare 2.11's C2C (k = 1) runs on the same pair, aligned
-(the compared epoch in the reference frame, the synthetic truth), as binary PLY:
+runs as its own process; then CloudCompare's C2C (k = 1; Debian's 2.11, or the build
+given by ``--cloudcompare``, e.g. the 2.13 one of ``../shared/cloudcompare-python``) runs on
+the same pair, aligned (the compared epoch in the reference frame, the synthetic truth), as
+binary PLY:
 ``CloudCompare -SILENT -AUTO_SAVE OFF -O ref.ply -O cmp.ply -C2C_DIST``. Wall time and peak
 RSS are those of each whole process (``os.wait4``). Rows:
 
@@ -44,12 +47,22 @@ PERIMETER = 2 * (5.8 + 2.86)
 LARGE = 20e6  # points per epoch beyond which the pair is written stretch by stretch
 
 
-def _run(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float, int, str]:
-    """Wall time (s), peak RSS (GB), exit code and the last lines of stderr of a process."""
+def _run(
+    cmd: list[str], env: dict[str, str] | None = None, timeout: float | None = None
+) -> tuple[float, float, int, str]:
+    """Wall time (s), peak RSS (GB), exit code and the last lines of stderr of a process
+    (killed after ``timeout`` seconds, exit code -9)."""
+    import threading
+
     t = time.perf_counter()
     with tempfile.TemporaryFile() as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, env=env)
+        timer = threading.Timer(timeout, proc.kill) if timeout else None
+        if timer is not None:
+            timer.start()
         _, status, usage = os.wait4(proc.pid, 0)
+        if timer is not None:
+            timer.cancel()
         wall = time.perf_counter() - t
         proc.returncode = os.waitstatus_to_exitcode(status)
         err.seek(0)
@@ -91,11 +104,23 @@ def main() -> None:
     ap.add_argument("--keep", help="keep the pairs and outputs in this folder")
     ap.add_argument("--reuse", action="store_true",
                     help="reuse the pairs already in --keep")
+    ap.add_argument("--cloudcompare", default=None,
+                    help="CloudCompare executable for C2C (default: CloudCompare on PATH, "
+                         "Debian's 2.11); a build unpacked as in ../shared/cloudcompare-python "
+                         "(e.g. /opt/cloudcompare-m3c2/bin/CloudCompare, 2.13) gets its "
+                         "lib/cloudcompare on LD_LIBRARY_PATH")
+    ap.add_argument("--c2c-timeout", type=float, default=3600.0,
+                    help="stop C2C after this many seconds and print it as not finished")
     ap.add_argument("detect_args", nargs="*", help="extra options for tunneldef detect")
     args = ap.parse_args()
     from tunneldef.io.stream import read_points
 
-    cc = shutil.which("CloudCompare")
+    cc = args.cloudcompare or shutil.which("CloudCompare")
+    cc_env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    if args.cloudcompare:
+        libs = Path(args.cloudcompare).resolve().parent.parent / "lib" / "cloudcompare"
+        if libs.is_dir():
+            cc_env["LD_LIBRARY_PATH"] = str(libs)
     lines = ["| points (ref + cmp) | length | format | detect wall s | detect peak RSS GB | "
              "C2C wall s | C2C peak RSS GB | detect / C2C time | load avg |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -122,12 +147,13 @@ def main() -> None:
                 print(f"detect failed ({code}): {tail}", file=sys.stderr)
             c_wall = c_rss = float("nan")
             if cc and (folder / "c2c_cmp.ply").exists():
-                env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
                 c_wall, c_rss, c_code, c_tail = _run(
                     [cc, "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(folder / "c2c_ref.ply"),
-                     "-O", str(folder / "c2c_cmp.ply"), "-C2C_DIST"], env)
+                     "-O", str(folder / "c2c_cmp.ply"), "-C2C_DIST"], cc_env,
+                    timeout=args.c2c_timeout)
                 if c_code != 0:
                     print(f"CloudCompare failed ({c_code}): {c_tail}", file=sys.stderr)
+                    c_wall = c_rss = float("nan")
             ratio = d_wall / c_wall if np.isfinite(c_wall) else float("nan")
             status = "" if code == 0 else " (failed)"
             lines.append(f"| {n_ref / 1e6:.2f} M + {n_cmp / 1e6:.2f} M | {length} m | {fmt} | "
