@@ -211,8 +211,14 @@ def _measure_task(
 
     centerline, settings = _context(workdir)
     ref, cmp, cmp_owned = _load(folder, "ref", "cmp", "cmp_owned")
+    reuse: dict[str, Any] = {}
+    if inputs is not None and os.path.exists(os.path.join(folder, "cmp_shell.npy")):
+        # the survey pass's shell masks (the same functions on the same points)
+        ref_mask, cmp_mask, cmp_shell = _load(folder, "ref_mask", "cmp_mask", "cmp_shell")
+        reuse = {"shell": cmp_shell, "masks": (ref_mask, cmp_mask)}
     d = compute_deformation(ref, cmp, centerline, settings=settings, coverage=coverage,
-                            robust_inputs=inputs, registration_sigma=registration_sigma)
+                            robust_inputs=inputs, registration_sigma=registration_sigma,
+                            **reuse)
     fields = {"deformation": d.deformation, "horizontal": d.horizontal,
               "vertical": d.vertical, "shell": d.shell}
     if d.significant is not None:

@@ -249,6 +249,7 @@ def compute_deformation(
     progress: ProgressCallback | None = None,
     coverage: tuple[float, float] | None = None,
     robust_inputs: dict[str, object] | None = None,
+    masks: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> DeformationResult:
     """Signed per-point deformation of a registered compared epoch against the reference.
 
@@ -287,6 +288,10 @@ def compute_deformation(
         :func:`tunneldef.deformation.local_surface.robust_deformation` (``origin``,
         ``core_anchor``, ``normal_corner``, ``typical_spread``: the whole clouds' values for a
         piece of them).
+    masks : (ndarray, ndarray) of bool, optional
+        ``robust`` only, with ``shell``: the reference's and the compared epoch's shell masks
+        cut at one level (:func:`common_masks`) when the caller already has them (a tile's
+        first pass); the envelopes are then not computed again.
 
     Returns
     -------
@@ -338,11 +343,19 @@ def compute_deformation(
         raise InvalidCloudError(
             f"shell mask has shape {np.shape(shell)}, expected ({cmp.shape[0]},)"
         )
+    if masks is not None and (
+        shell is None or np.shape(masks[0]) != (ref.shape[0],)
+        or np.shape(masks[1]) != (cmp.shape[0],)
+    ):
+        raise InvalidCloudError(
+            "masks must come with the shell mask and hold one value per reference and per "
+            "compared point"
+        )
 
     with timed_stage(logger, f"deformation ({method}) of {cmp.shape[0]} points"):
         notify(progress, "deformation", 0.0)
         ref_job = None
-        if method == "robust":
+        if method == "robust" and masks is None:
             # the reference's projection and shell envelope are independent of the compared
             # cloud's: a second thread computes them meanwhile (NumPy's sorts and array
             # arithmetic release the GIL)
@@ -366,18 +379,22 @@ def compute_deformation(
         else:
             from .local_surface import robust_deformation
 
-            assert ref_job is not None
-            ref_pp, ref_env, ref_off, ref_obl = ref_job.result()
-            ref_chainage = ref_pp.chainage
-            if cmp_env is None:  # the caller's own shell mask: each epoch on its own
-                ref_mask = shell_module.shell_mask(ref_off, ref_obl)
-                cmp_mask = shell_mask
+            if masks is not None:  # the caller's masks, cut at one level already
+                ref_mask, cmp_mask = (np.asarray(m, dtype=bool) for m in masks)
             else:
-                # both epochs' surfaces are measured on points cut at one level, from the inner
-                # of the two envelopes once their local difference (the motion) is taken out
-                ref_mask, cmp_mask = common_masks(
-                    ref_env, ref_pp, ref_off, ref_obl, cmp_env, pp, cmp_off, cmp_obl
-                )
+                assert ref_job is not None
+                ref_pp, ref_env, ref_off, ref_obl = ref_job.result()
+                ref_chainage = ref_pp.chainage
+                if cmp_env is None:  # the caller's own shell mask: each epoch on its own
+                    ref_mask = shell_module.shell_mask(ref_off, ref_obl)
+                    cmp_mask = shell_mask
+                else:
+                    # both epochs' surfaces are measured on points cut at one level, from the
+                    # inner of the two envelopes once their local difference (the motion) is
+                    # taken out
+                    ref_mask, cmp_mask = common_masks(
+                        ref_env, ref_pp, ref_off, ref_obl, cmp_env, pp, cmp_off, cmp_obl
+                    )
             # the grids and typical spreads come from the whole clouds (or, for a tile, from
             # the whole survey's: robust_inputs), the same for both passes below, so that a
             # tile's values are the untiled ones
