@@ -93,6 +93,11 @@ def test_tiles_equal_untiled(registered, method: str, tile_length: float) -> Non
 def test_margin_covers_the_estimator_reach() -> None:
     cfg = Config().deformation
     assert tile_margin(cfg) > 1.0 + cfg.normal_radius + 2 * cfg.cylinder_radius
+    # the stand-off rays of a point the classifier left out reach twice standoff_reach
+    # behind its core, wherever the surfaces' chain ends
+    for reach in (1.5, 4.0):
+        far = Config().replace(deformation={"standoff_reach": reach}).deformation
+        assert tile_margin(far) >= 1.2 * (2 * reach + far.normal_radius + 1.0)
     assert tile_margin(Config().replace(deformation={"method": "knn"}).deformation) >= (
         3 * cfg.max_distance)
 

@@ -67,22 +67,33 @@ def tile_margin(settings: DeformationConfig) -> float:
     """Margin added on both sides of a tile, metres, so that every owned point's value is the
     untiled one.
 
-    ``robust``: the reach of everything an owned point's value depends on, chained: its core
-    (within ``normal_radius + 2 core_spacing``), the cores interpolated at it (1.5 spacings),
-    the sharpening (1.5 spacings) and pooling (3 sigma of the coarser pooled mean) of those
-    cores, their wide cylinders (``hypot(2 cylinder_radius, max_depth)``) and the normals and
-    shell windows (1 m) of the points in them, and the stand-off rays of points the shell
-    classifier left out (twice ``standoff_reach``); times 1.2 for curves (chainage shrinks inside a
-    bend). ``knn``: three times ``max_distance``. Never less than 3 m.
+    ``robust``: the longer of two chains of what an owned point's value depends on, times 1.2
+    for curves (chainage shrinks inside a bend):
+
+    * the surfaces: its core (within ``normal_radius + 2 core_spacing``), the cores
+      interpolated at it (1.5 spacings), the sharpening (1.5 spacings) and pooling (3 sigma of
+      the coarser pooled mean) of those cores, their wide cylinders (``hypot(2
+      cylinder_radius, max_depth)``) and the normals and shell windows (1 m) of the points in
+      them;
+    * the stand-off test of a point the shell classifier left out: its core, the shell windows
+      that decide which points make that core (1 m), and the rays behind the core (up to twice
+      ``standoff_reach``, as thick as the probe). The test reads the points on the rays
+      whatever their class, and decides that point's value alone, so this chain does not add
+      to the first.
+
+    ``knn``: three times ``max_distance``. Never less than 3 m.
     """
     s, r, nr = settings.core_spacing, settings.cylinder_radius, settings.normal_radius
     if settings.method == "knn":
         return max(3.0, 3.0 * float(settings.max_distance))
     s2 = math.sqrt(2.0 * r**2 + 0.25 * r**2 + (0.6 * s) ** 2)
-    reach = ((nr + 2 * s) + 1.5 * s + 1.5 * s + 3.0 * s2
-             + 2.0 * math.hypot(2 * r, settings.max_depth) + (nr + s) + math.sqrt(3) * s + 1.0
-             + 2.0 * settings.standoff_reach)
-    return max(3.0, 1.2 * reach)
+    surfaces = ((nr + 2 * s) + 1.5 * s + 1.5 * s + 3.0 * s2
+                + 2.0 * math.hypot(2 * r, settings.max_depth) + (nr + s) + math.sqrt(3) * s
+                + 1.0)
+    from .deformation.compute import _PROBE_RADIUS
+
+    standoff = (nr + 2 * s) + 1.0 + 2.0 * settings.standoff_reach + 2.0 * _PROBE_RADIUS
+    return max(3.0, 1.2 * max(surfaces, standoff))
 
 
 def tile_length_for(points_per_metre: float, memory_gb: float, margin: float) -> float:
