@@ -86,11 +86,13 @@ def thread_map(
 ) -> list[Any]:
     """``[fn(*a) for a in args]`` on Dask's local threaded scheduler, results in order.
 
-    For many small tasks of one process that spend their time in NumPy, SciPy and
-    scikit-image (which release the GIL): the slices of a centreline pass. ``threads``
-    defaults to the machine's cores; with one thread, or one task, the tasks run in the
-    calling thread, in order. ``progress(stage, fraction)`` is called from the calling
-    thread as tasks finish; ``after_task`` after each task (e.g. :func:`release_memory`).
+    For independent pieces of one process that spend their time in compiled code that
+    releases the GIL (NumPy, SciPy, scikit-image, the Numba kernels): a centreline pass's
+    slices, the registration's direction candidates, the registration check's slides; and
+    the chainage tiles on the local scheduler. ``threads`` defaults to the machine's cores;
+    with one thread, or one task, the tasks run in the calling thread, in order.
+    ``progress(stage, fraction)`` is called from the calling thread as tasks finish;
+    ``after_task`` after each task (e.g. :func:`release_memory`).
     """
     n = len(args)
     threads = max(int(threads if threads is not None else (os.cpu_count() or 1)), 1)
