@@ -136,3 +136,38 @@ def test_detect_can_map_the_compared_epoch_in_place(tmp_path) -> None:
     assert not np.allclose(cmp.xyz, before)  # moved by the synthetic pair's rigid motion
     np.testing.assert_allclose(cmp.xyz, copied.cloud.xyz, rtol=0, atol=1e-9)
     assert_fields_equal(in_place.cloud.fields, copied.cloud.fields)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_thread_map_keeps_order_reports_progress_and_raises(threads: int) -> None:
+    """Results in the order of the arguments whatever order the threads finish in; progress
+    from 0 to 1 in the calling thread; a task's own exception reaches the caller as itself."""
+    import threading
+    import time
+
+    from tunneldef.engine import thread_map
+
+    seen: list[tuple[str, float, str]] = []
+
+    def progress(stage: str, fraction: float) -> None:
+        seen.append((stage, fraction, threading.current_thread().name))
+
+    def slow_first(i: int, x: float) -> float:
+        time.sleep(0.02 if i == 0 else 0.0)  # the first finishes last in two threads
+        return i * x
+
+    out = thread_map(slow_first, [(i, 1.5) for i in range(7)], threads=threads,
+                     stage="pieces", progress=progress)
+    assert out == [i * 1.5 for i in range(7)]
+    fractions = [f for _, f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0 and len(fractions) == 7
+    assert {s for s, _, _ in seen} == {"pieces"}
+    assert {t for _, _, t in seen} == {threading.current_thread().name}
+
+    def fails(i: int) -> int:
+        if i == 3:
+            raise ValueError("piece 3 has no floor")
+        return i
+
+    with pytest.raises(ValueError, match="piece 3 has no floor"):
+        thread_map(fails, [(i,) for i in range(6)], threads=threads)
