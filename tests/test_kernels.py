@@ -180,3 +180,28 @@ def test_projection_kernel_equals_the_numpy_formulation() -> None:
                   rng.uniform(0.0, cl.length, 2000)]
     want = np.clip(np.round(np.interp(probe, ch, np.arange(len(ch)))), 0, len(ch) - 1)
     assert [_sample_index(x, ch) for x in probe] == want.astype(int).tolist()
+
+
+def test_candidate_terms_equal_the_numpy_formulation() -> None:
+    # the sliding points' cached candidate terms, without the (M, K, 3) offsets NumPy needs
+    from scipy.spatial import cKDTree
+
+    from tunneldef.registration.kernels import candidate_terms
+
+    rng = np.random.default_rng(4)
+    ref = rng.uniform(0.0, 2.0, (4_000, 3))
+    p = rng.uniform(-0.5, 2.5, (3_000, 3))  # some beyond the reference: fewer candidates
+    tan = rng.normal(size=(3_000, 3))
+    tan /= np.linalg.norm(tan, axis=1, keepdims=True)
+    d, j = cKDTree(ref).query(p, k=8, distance_upper_bound=0.2)
+    missing = ~np.isfinite(d)
+    assert missing.any() and (~missing).any()
+    cand, a, b = candidate_terms(p, ref, j.astype(np.int64), d, tan)
+    want_cand = np.where(missing, 0, j)
+    off = p[:, None, :] - ref[want_cand]
+    want_a = np.where(missing, np.inf, np.einsum("ijk,ijk->ij", off, off))
+    want_b = 2.0 * np.einsum("ijk,ik->ij", off, tan)
+    np.testing.assert_array_equal(cand, want_cand)
+    np.testing.assert_array_equal(np.isinf(a), missing)
+    np.testing.assert_allclose(a[~missing], want_a[~missing], rtol=4e-16, atol=4e-16)
+    np.testing.assert_allclose(b, want_b, rtol=4e-16, atol=1e-15)

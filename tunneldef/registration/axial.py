@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from ..curve import Centerline
 from ..spatial import query_workers
-from .kernels import nearest_two, slide_residuals
+from .kernels import candidate_terms, nearest_two, slide_residuals
 
 __all__ = ["AxialShift", "coarse_shift", "fine_shift", "noise_kernel", "section_image"]
 
@@ -230,7 +230,10 @@ class _SlidingNearest:
         self, tree: cKDTree, ref_xyz: np.ndarray, xyz: np.ndarray, tangents: np.ndarray,
         reach: float, delta: float = 0.0,
     ) -> None:
-        self.tree, self.ref, self.xyz, self.tan, self.reach = tree, ref_xyz, xyz, tangents, reach
+        self.tree, self.reach = tree, reach
+        self.ref = np.asarray(ref_xyz, dtype=np.float64)
+        self.xyz = np.asarray(xyz, dtype=np.float64)
+        self.tan = np.asarray(tangents, dtype=np.float64)
         self.queries = 0
         self._base(delta)
 
@@ -241,13 +244,11 @@ class _SlidingNearest:
         )
         self.queries += 1
         self.delta0 = delta
-        missing = ~np.isfinite(d)
-        self.cand = np.where(missing, 0, j)
-        off = p[:, None, :] - self.ref[self.cand]  # (M, K, 3)
-        self.a = np.where(missing, np.inf, np.einsum("ijk,ijk->ij", off, off))
-        self.b = 2.0 * np.einsum("ijk,ik->ij", off, self.tan)
         # every reference point outside the set lies at least this far from the base point
-        self.dk = np.where(missing[:, -1], self.reach, d[:, -1])
+        self.dk = np.where(np.isfinite(d[:, -1]), d[:, -1], self.reach)
+        self.cand, self.a, self.b = candidate_terms(
+            p, self.ref, np.asarray(j, dtype=np.int64), d, self.tan
+        )
 
     def query(self, delta: float, bound: float) -> tuple[np.ndarray, np.ndarray]:
         """``(d, j)`` as ``tree.query(x + delta * t, distance_upper_bound=bound)``."""
