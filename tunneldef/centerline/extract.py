@@ -349,20 +349,21 @@ def _slice_pass(
     for i in set(range(len(records))) - set(todo):
         records[i].reason = f"too few points ({records[i].n_points} < {slicing.min_points})"
 
-    def one(i: int) -> tuple[RoofFloor, WallLines | None, np.ndarray]:
-        return analyse_slice(local[slices[i].index], slices[i].station, slicing=slicing,
-                             settings=settings, leans=leans)
+    def one(i: int) -> None:
+        # each task fills its own slice's record and lets go of the slice's density images
+        # (kept for all slices at once they took 0.9 GB over 350 m)
+        rf, walls, _ = analyse_slice(local[slices[i].index], slices[i].station,
+                                     slicing=slicing, settings=settings, leans=leans)
+        rec = records[i]
+        if record_lines(rec, rf, walls):
+            rec.width, rec.height = rec.left - rec.right, rec.roof - rec.floor
+            rec.ok = True
 
     # slices are independent: Dask's threads run them side by side (the image work releases
-    # the GIL); the records are filled in slice order, so the result is the serial one
+    # the GIL); every record is filled from its own slice alone, so the result is the serial
+    # one
     notify(progress, stage, 0.0)
-    results = thread_map(one, [(i,) for i in todo], stage=stage, progress=progress)
-    for i, (rf, walls, _) in zip(todo, results, strict=True):
-        rec = records[i]
-        if not record_lines(rec, rf, walls):
-            continue
-        rec.width, rec.height = rec.left - rec.right, rec.roof - rec.floor
-        rec.ok = True
+    thread_map(one, [(i,) for i in todo], stage=stage, progress=progress)
     notify(progress, stage, 1.0)
     smooth_roof_lifts(records, settings.neighbour_window)
     _reject_jumps(records, settings)
