@@ -205,3 +205,19 @@ def test_candidate_terms_equal_the_numpy_formulation() -> None:
     np.testing.assert_array_equal(np.isinf(a), missing)
     np.testing.assert_allclose(a[~missing], want_a[~missing], rtol=4e-16, atol=4e-16)
     np.testing.assert_allclose(b, want_b, rtol=4e-16, atol=1e-15)
+
+
+def test_slides_run_side_by_side_only_within_their_memory_budget() -> None:
+    from tunneldef.registration.axial import (
+        _SLIDE_BYTES_PER_POINT,
+        SLIDE_MEMORY_BUDGET,
+        concurrent_slides,
+    )
+
+    assert concurrent_slides(90_000, 2) == 2  # a 60 m survey's slides
+    assert concurrent_slides(525_000, 2) == 2  # 350 m
+    assert concurrent_slides(1_500_000, 2) == 1  # 1 km: one at a time
+    assert concurrent_slides(10, 1) == 1 and concurrent_slides(10**9, 8) == 1
+    for n in (60_000, 525_000, 1_500_000):
+        k = concurrent_slides(n, 64)
+        assert k == 1 or k * n * _SLIDE_BYTES_PER_POINT <= SLIDE_MEMORY_BUDGET

@@ -24,7 +24,10 @@ from ..curve import Centerline
 from ..spatial import query_workers
 from .kernels import candidate_terms, nearest_two, slide_residuals
 
-__all__ = ["AxialShift", "coarse_shift", "fine_shift", "noise_kernel", "section_image"]
+__all__ = [
+    "AxialShift", "coarse_shift", "fine_shift", "noise_kernel", "section_image",
+    "concurrent_slides",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -202,6 +205,22 @@ def noise_kernel(residuals: np.ndarray) -> float:
     axis, claimed +-2 mm)."""
     r = np.asarray(residuals, dtype=np.float64)
     return 4.685 * 1.4826 * float(np.median(np.abs(r))) if r.size else 0.0
+
+
+#: Working memory of one slide per sliding point, bytes: the KD-tree's 8 candidates with
+#: their distances (transient), the cached candidates and their two terms, the residuals
+_SLIDE_BYTES_PER_POINT = 8 * (8 + 8) + 8 * (8 + 8 + 8) + 64
+#: Memory the slides that run side by side may take together, bytes
+SLIDE_MEMORY_BUDGET = 600e6
+
+
+def concurrent_slides(points: int, wanted: int) -> int:
+    """How many slides of ``points`` sliding points each may run at once (at most ``wanted``,
+    the cores): as many as fit :data:`SLIDE_MEMORY_BUDGET`, at least one. A 60 m or 350 m
+    survey's slides run side by side; a 1 km survey's (1.5 M points each, 0.4 GB) one at a
+    time, so that its peak stays that of one slide."""
+    per = max(int(points), 1) * _SLIDE_BYTES_PER_POINT
+    return max(1, min(int(wanted), int(SLIDE_MEMORY_BUDGET // per)))
 
 
 class _SlidingNearest:

@@ -31,6 +31,7 @@ from ..errors import NotATunnelError, RegistrationError
 from ..frame import TunnelFrame, principal_frame
 from ..progress import ProgressCallback, notify
 from ..spatial import query_workers, random_subset
+from .axial import concurrent_slides
 from .baselines import BASELINES
 from .metrics import (
     apply_transform,
@@ -260,9 +261,12 @@ def _best_candidate(
         stage_t[method if method != "centerline" else "fine"] = time.perf_counter() - t0
         return (score, fit, q, (coarse, local, stages, info, stage_t, second), "")
 
-    # the direction candidates are independent: Dask's local threads run them side by side
+    # the direction candidates are independent: Dask's local threads run them side by side,
+    # as many as the slides' memory budget allows
+    slides = concurrent_slides(_axial_points(ctx.ref_cl, rc) if ctx.ref_cl is not None
+                               else len(ctx.cmp_s), os.cpu_count() or 1)
     candidates = thread_map(
-        candidate, flips, threads=min(len(flips), os.cpu_count() or 1), stage="registration",
+        candidate, flips, threads=min(len(flips), slides), stage="registration",
         progress=(None if ctx.progress is None
                   else lambda _stage, f: notify(ctx.progress, "registration", 0.5 + 0.2 * f)),
     )

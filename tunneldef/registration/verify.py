@@ -31,6 +31,7 @@ a network.
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -41,7 +42,14 @@ from ..curve import Centerline
 from ..engine import thread_map
 from ..spatial import random_subset
 from ..transforms import apply_transform
-from .axial import AxialShift, _mismatch, coarse_shift, noise_kernel, section_image
+from .axial import (
+    AxialShift,
+    _mismatch,
+    coarse_shift,
+    concurrent_slides,
+    noise_kernel,
+    section_image,
+)
 from .views import axial_correction, normals
 
 __all__ = [
@@ -492,8 +500,10 @@ def verify_registration(
     def slide(n: np.ndarray, pts: np.ndarray, floor: bool, reuse: dict) -> AxialShift:
         return axial_correction(ref, n, pts, cl, slide_points, noise_floor=floor, **reuse)[1]
 
-    # independent slides: Dask's local threads run them side by side
-    fine, low, high, wide, *narrow = thread_map(slide, slides)
+    # independent slides: Dask's local threads run them side by side, as many as the slides'
+    # memory budget allows
+    fine, low, high, wide, *narrow = thread_map(
+        slide, slides, threads=concurrent_slides(slide_points, os.cpu_count() or 1))
     probes = [side * _PROBE + p.shift if p.informative else np.nan
               for side, p in ((-1.0, low), (1.0, high))]
     # nothing to judge when the slide itself found no surface across the axis; a start 2 cm
