@@ -10,6 +10,10 @@ chainage bin and per angle around it; its columns at 0 and 180 degrees are the h
 at 90 and 270 degrees the half-heights, their difference the centreline's y), and the shift is
 the minimum of a robust mismatch between the two images, searched coarse-to-fine with sub-bin
 interpolation. The curvature of the mismatch at its minimum gives the shift's uncertainty.
+
+One idea at this length: the one degree of freedom the section shape leaves free, found
+coarse (the section images) and fine (the point-to-plane slide with its cached nearest
+neighbours and its memory budget), with the uncertainty of each.
 """
 
 from __future__ import annotations
