@@ -70,6 +70,13 @@ def _run(
     return wall, usage.ru_maxrss / 1024**2, proc.returncode, " | ".join(tail)
 
 
+def _count(folder: Path, fmt: str) -> tuple[int, int]:
+    """Points of the kept pair's two epochs."""
+    from tunneldef.io.stream import read_points
+
+    return tuple(len(read_points(folder / f"{e}.{fmt}")[0]) for e in ("ref", "cmp"))
+
+
 def _pair(length: float, points: float, fmt: str, folder: Path) -> tuple[int, int]:
     from tunneldef import synth
     from tunneldef.cloud import Cloud
@@ -113,8 +120,13 @@ def main() -> None:
                     help="stop C2C after this many seconds and print it as not finished")
     ap.add_argument("detect_args", nargs="*", help="extra options for tunneldef detect")
     args = ap.parse_args()
-    from tunneldef.io.stream import read_points
+    # the pairs are drawn (or counted) in a helper process: a child forked from a parent that
+    # holds a 350 m pair starts with the parent's resident pages, and getrusage's peak keeps
+    # them across exec (detect and C2C both read 3.13 GB that way, the parent's size)
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
 
+    helper = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"))
     cc = args.cloudcompare or shutil.which("CloudCompare")
     cc_env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
     if args.cloudcompare:
@@ -133,9 +145,9 @@ def main() -> None:
         try:
             t = time.perf_counter()
             if args.reuse and (folder / f"cmp.{fmt}").exists():
-                n_ref, n_cmp = (len(read_points(folder / f"{e}.{fmt}")[0]) for e in ("ref", "cmp"))
+                n_ref, n_cmp = helper.submit(_count, folder, fmt).result()
             else:
-                n_ref, n_cmp = _pair(length, points, fmt, folder)
+                n_ref, n_cmp = helper.submit(_pair, length, points, fmt, folder).result()
             print(f"{length} m: pair ready in {time.perf_counter() - t:.0f} s", file=sys.stderr)
             load = os.getloadavg()[0]
             cmd = [sys.executable, "-c", "import sys; from tunneldef.cli import main; "
@@ -163,6 +175,7 @@ def main() -> None:
         finally:
             if not args.keep:
                 shutil.rmtree(base, ignore_errors=True)
+    helper.shutdown()
     print("\n".join(lines))
 
 
