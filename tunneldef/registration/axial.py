@@ -221,7 +221,7 @@ SLIDE_MEMORY_BUDGET = 600e6
 def concurrent_slides(points: int, wanted: int) -> int:
     """How many slides of ``points`` sliding points each may run at once (at most ``wanted``,
     the cores): as many as fit :data:`SLIDE_MEMORY_BUDGET`, at least one. A 60 m or 350 m
-    survey's slides run side by side; a 1 km survey's (1.5 M points each, 0.4 GB) one at a
+    survey's slides run side by side; a 1 km survey's (1.5 M points each, 0.6 GB) one at a
     time, so that its peak stays that of one slide."""
     per = max(int(points), 1) * _SLIDE_BYTES_PER_POINT
     return max(1, min(int(wanted), int(SLIDE_MEMORY_BUDGET // per)))
