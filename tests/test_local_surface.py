@@ -9,6 +9,7 @@ from scipy.special import ndtri
 
 from tunneldef.deformation.cylinders import _INNER_TRIM
 from tunneldef.deformation.local_surface import (
+    CylinderPass,
     RobustDeformation,
     robust_deformation,
     voxel_cores,
@@ -318,6 +319,37 @@ def test_every_point_gets_a_value_where_reference_exists():
     assert np.isnan(r.deformation[beyond & (tr.label == 0)]).mean() > 0.95
     assert np.array_equal(np.isnan(r.lod95), np.isnan(r.deformation))
     assert not r.significant[np.isnan(r.deformation)].any()
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_resuming_from_a_saved_cylinder_pass_gives_the_same_values(tmp_path, masked):
+    """A tile's measuring pass resumes from its spreads pass (saved to disk in between):
+    every field, core value and count is the one a single call gives, bit for bit; a state
+    computed on other points is refused."""
+    pair = _pair(seed=4, deformations=[DeformationSpec(kind="roof_sag", chainage=6.0,
+                                                       amplitude=0.03)], equipment=True)
+    ref, cmp_ = pair.ref.xyz, pair.truth.cmp_xyz_in_ref
+    kw: dict = {"registration_sigma": 0.002}
+    if masked:  # masks and a measured subset, as the tiles give them
+        rng = np.random.default_rng(0)
+        kw |= {"ref_mask": rng.random(len(ref)) < 0.9, "cmp_mask": rng.random(len(cmp_)) < 0.9,
+               "measure": rng.random(len(cmp_)) < 0.8}
+    whole = _run(pair, **kw)
+    state = _run(pair, spreads_only=True, **kw)
+    assert isinstance(state, CylinderPass)
+    state.save(str(tmp_path / "c.npz"))
+    loaded = CylinderPass.load(str(tmp_path / "c.npz"))
+    np.testing.assert_array_equal(loaded.spread_ref, state.spread_ref)
+    resumed = _run(pair, resume=loaded, **kw)
+    for name in ("deformation", "lod95", "significant", "normal", "n_ref", "n_cmp",
+                 "sigma_ref", "sigma_cmp", "core", "core_deformation", "core_lod95",
+                 "core_radius", "core_ref_depth"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name), name)
+    assert resumed.meta == whole.meta
+    assert whole.meta["wide_cylinder_cores"] > 0  # the resumed pass built its indexes again
+    with pytest.raises(ValueError, match="saved cylinder pass"):
+        robust_deformation(ref[:-10], cmp_, pair.truth.centerline, resume=loaded,
+                           **{k: v for k, v in kw.items() if k != "ref_mask"})
 
 
 def test_errors():

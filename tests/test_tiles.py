@@ -71,15 +71,23 @@ def _zones(d):
 
 @pytest.mark.parametrize(("method", "tile_length"),
                          [("robust", 25.0), ("knn", 25.0), ("robust", 500.0)])
-def test_tiles_equal_untiled(registered, method: str, tile_length: float) -> None:
+def test_tiles_equal_untiled(registered, method: str, tile_length: float, monkeypatch) -> None:
     """Four tiles, and one tile holding the whole pair; with a registration uncertainty,
-    which widens the LoD95 and so changes which support each point is measured at."""
+    which widens the LoD95 and so changes which support each point is measured at. The
+    robust tiles' measuring pass resumes from their spreads pass's cylinders."""
+    from tunneldef.deformation.local_surface import CylinderPass
+
+    loaded = []
+    load = CylinderPass.load
+    monkeypatch.setattr(CylinderPass, "load", classmethod(
+        lambda cls, path: loaded.append(path) or load(path)))
     ref, cmp, line = registered
     settings = Config().replace(deformation={"method": method}).deformation
     sigma = 0.004
     whole = compute_deformation(ref, cmp, line, settings=settings, registration_sigma=sigma)
     tiled = tiled_deformation(ref, cmp, line, settings=settings, tile_length=tile_length,
                               registration_sigma=sigma)
+    assert len(loaded) == (4 if (method, tile_length) == ("robust", 25.0) else 0)
     assert_fields_equal(tiled.fields(), whole.fields())
     danger_t, zones_t = _zones(tiled)
     danger_w, zones_w = _zones(whole)

@@ -565,7 +565,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "the tiles at once, on a cluster per worker; chooses the tile length")
     p.add_argument("--workers", type=int, metavar="N",
                    help="start a local Dask cluster of N worker processes (default: Dask's "
-                   "threaded scheduler, one tile per core)")
+                   "threaded scheduler, as many tiles at once as --memory holds at 1.5 GB "
+                   "each, at most one per core)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="run the tiles on an existing Dask cluster (tcp://host:port); its "
                    "workers must see --tile-dir")

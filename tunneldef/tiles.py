@@ -197,19 +197,27 @@ def _survey_task(workdir: str, folder: str) -> int:
 
 
 def _spreads_task(workdir: str, folder: str, inputs: dict[str, Any]) -> int:
-    """Pass 2: cylinder spreads of the cores this tile owns (saved)."""
+    """Pass 2: cylinder spreads of the cores this tile owns (saved), and the estimator's state
+    after them, which pass 3 resumes from."""
     from .deformation.local_surface import robust_deformation
 
     centerline, settings = _context(workdir)
     ref, cmp, ref_mask, cmp_mask, cmp_shell, cmp_owned = _load(
         folder, "ref", "cmp", "ref_mask", "cmp_mask", "cmp_shell", "cmp_owned")
-    _, inverse, sr, sc = robust_deformation(
+    if not cmp_shell.any():  # nothing on the shell here: no cylinders, nothing to resume
+        for name in ("spread_ref", "spread_cmp"):
+            _save(folder, name, np.empty(0))
+        return 0
+    state = robust_deformation(
         ref, cmp, centerline, ref_mask=ref_mask, cmp_mask=cmp_mask, measure=cmp_shell,
         spreads_only=True, **_robust_inputs(centerline, settings, ref, cmp, inputs))
-    first = np.unique(inverse, return_index=True)[1]  # points are in file order
+    first = np.unique(state.inverse, return_index=True)[1]  # points are in file order
     mine = cmp_owned[cmp_shell][first]
-    _save(folder, "spread_ref", sr[mine])
-    _save(folder, "spread_cmp", sc[mine])
+    _save(folder, "spread_ref", state.spread_ref[mine])
+    _save(folder, "spread_cmp", state.spread_cmp[mine])
+    tmp = os.path.join(folder, f".cylinders.{os.getpid()}.tmp.npz")
+    state.save(tmp)
+    os.replace(tmp, os.path.join(folder, "cylinders.npz"))
     return int(mine.sum())
 
 
@@ -227,6 +235,11 @@ def _measure_task(
         # the survey pass's shell masks (the same functions on the same points)
         ref_mask, cmp_mask, cmp_shell = _load(folder, "ref_mask", "cmp_mask", "cmp_shell")
         reuse = {"shell": cmp_shell, "masks": (ref_mask, cmp_mask)}
+        state = os.path.join(folder, "cylinders.npz")
+        if os.path.exists(state):  # and the spreads pass's cylinders, on the same points
+            from .deformation.local_surface import CylinderPass
+
+            reuse["resume"] = CylinderPass.load(state)
     d = compute_deformation(ref, cmp, centerline, settings=settings, coverage=coverage,
                             robust_inputs=inputs, registration_sigma=registration_sigma,
                             **reuse)

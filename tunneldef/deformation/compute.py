@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import fields as dataclass_fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from . import shell as shell_module
 from .knn import counterpart_projection, knn_counterparts, manhattan_split
 from .result import DeformationResult
 from .sections import surface_labels
+
+if TYPE_CHECKING:
+    from .local_surface import CylinderPass
 
 __all__ = ["compute_deformation", "common_masks", "global_inputs", "METHODS"]
 
@@ -250,6 +254,7 @@ def compute_deformation(
     coverage: tuple[float, float] | None = None,
     robust_inputs: dict[str, object] | None = None,
     masks: tuple[np.ndarray, np.ndarray] | None = None,
+    resume: CylinderPass | None = None,
 ) -> DeformationResult:
     """Signed per-point deformation of a registered compared epoch against the reference.
 
@@ -292,6 +297,11 @@ def compute_deformation(
         ``robust`` only, with ``shell``: the reference's and the compared epoch's shell masks
         cut at one level (:func:`common_masks`) when the caller already has them (a tile's
         first pass); the envelopes are then not computed again.
+    resume : CylinderPass, optional
+        ``robust`` only, with ``masks``: the estimator's cylinder pass on the shell points,
+        computed for the same clouds, masks and ``robust_inputs`` (a tile's spreads pass);
+        the estimator resumes from it (see
+        :func:`tunneldef.deformation.local_surface.robust_deformation`).
 
     Returns
     -------
@@ -351,6 +361,8 @@ def compute_deformation(
             "masks must come with the shell mask and hold one value per reference and per "
             "compared point"
         )
+    if resume is not None and masks is None:
+        raise ValueError("resume comes with the masks its cylinder pass was computed on")
 
     with timed_stage(logger, f"deformation ({method}) of {cmp.shape[0]} points"):
         notify(progress, "deformation", 0.0)
@@ -410,6 +422,7 @@ def compute_deformation(
                 registration_sigma=registration_sigma,
                 workers=workers,
                 progress=scaled(progress, 0.1, 0.75),
+                resume=resume,
                 **kwargs,
             )
             deformation = np.asarray(r.deformation, dtype=np.float64)

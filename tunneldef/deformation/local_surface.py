@@ -136,7 +136,9 @@ from .cylinders import (
     voxel_cores,
 )
 
-__all__ = ["RobustDeformation", "robust_deformation", "voxel_cores", "normal_grid_corner"]
+__all__ = [
+    "RobustDeformation", "CylinderPass", "robust_deformation", "voxel_cores", "normal_grid_corner",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -221,6 +223,177 @@ class RobustDeformation:
     unsupported: np.ndarray | None = None
 
 
+_PASS_ARRAYS = ("cores", "inverse", "normal", "variation", "variation_wide", "edge_ids",
+                "radius_used", "depth_used", "ref_order", "cmp_order", "ref_core", "cmp_core")
+
+
+@dataclass
+class CylinderPass:
+    """The estimator's state after its cylinder statistics (passes 1 and 2), to resume from.
+
+    A tile computes it once to learn its cylinder spreads (whose medians over the whole survey
+    are the typical spreads every tile needs), saves it, and the tile's measuring pass resumes
+    from it instead of fitting the same normals and gathering the same cylinders again.
+    Positions are offsets from the estimator's local origin; ``ref_order`` / ``cmp_order``
+    sort the surface points voxel by voxel, ``ref_core`` / ``cmp_core`` give each sorted point
+    its nearest core (whose normal it carries in the cylinder gathers).
+    """
+
+    cores: np.ndarray
+    inverse: np.ndarray
+    normal: np.ndarray
+    variation: np.ndarray
+    variation_wide: np.ndarray
+    edge_ids: np.ndarray
+    out: dict[str, np.ndarray]
+    radius_used: np.ndarray
+    depth_used: np.ndarray
+    n_deep: int
+    ref_order: np.ndarray
+    cmp_order: np.ndarray
+    ref_core: np.ndarray
+    cmp_core: np.ndarray
+    _epochs: tuple[_Epoch, _Epoch] | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def spread_ref(self) -> np.ndarray:
+        """Spread of each core's reference cylinder, m (NaN without points)."""
+        return self.out["sr"]
+
+    @property
+    def spread_cmp(self) -> np.ndarray:
+        """Spread of each core's compared cylinder, m (NaN without points)."""
+        return self.out["sc"]
+
+    def save(self, path: str) -> None:
+        """Write the state to ``path`` (an uncompressed ``.npz``)."""
+        arrays = {k: getattr(self, k) for k in _PASS_ARRAYS}
+        for k in ("inverse", "ref_order", "cmp_order", "ref_core", "cmp_core", "edge_ids"):
+            a = arrays[k]
+            if a.size == 0 or int(a.max()) < 2**31 - 1:
+                arrays[k] = a.astype(np.int32)
+        arrays.update({f"out_{k}": v for k, v in self.out.items()})
+        with open(path, "wb") as f:
+            np.savez(f, n_deep=np.int64(self.n_deep), **arrays)
+
+    @classmethod
+    def load(cls, path: str) -> CylinderPass:
+        """Read a state written by :meth:`save`."""
+        with np.load(path) as z:
+            kw = {k: z[k] for k in _PASS_ARRAYS}
+            for k in ("inverse", "ref_order", "cmp_order", "ref_core", "cmp_core", "edge_ids"):
+                kw[k] = kw[k].astype(np.intp)
+            out = {k[4:]: z[k] for k in z.files if k.startswith("out_")}
+            return cls(out=out, n_deep=int(z["n_deep"]), **kw)
+
+    def checked(self, n_ref: int, n_cmp: int, n_todo: int) -> CylinderPass:
+        """This state, if it was computed for that many reference surface points, compared
+        surface points and measured points; a ``ValueError`` otherwise."""
+        if (len(self.ref_order), len(self.cmp_order), len(self.inverse)) != (n_ref, n_cmp, n_todo):
+            raise ValueError(
+                f"resume: the saved cylinder pass holds {len(self.ref_order)} reference, "
+                f"{len(self.cmp_order)} compared and {len(self.inverse)} measured points, "
+                f"the inputs {n_ref}, {n_cmp} and {n_todo}"
+            )
+        return self
+
+    def epochs(
+        self, ref_use: np.ndarray, cmp_use: np.ndarray, origin: np.ndarray, index_radius: float
+    ) -> tuple[_Epoch, _Epoch]:
+        """Both epochs' cylinder indexes (built again from the inputs on a resumed state)."""
+        if self._epochs is None:
+            n32 = self.normal.astype(np.float32)
+            ref_sorted = (ref_use - origin)[self.ref_order]
+            cmp_sorted = cmp_use[self.cmp_order] - origin
+            self._epochs = (_Epoch(ref_sorted, n32[self.ref_core], index_radius),
+                            _Epoch(cmp_sorted, n32[self.cmp_core], index_radius))
+        return self._epochs
+
+
+def _cylinder_pass(
+    ref_use: np.ndarray, cmp_use: np.ndarray, todo: np.ndarray, line: Centerline,
+    origin: np.ndarray, *, cmp_mask, measure, normal_radius, cylinder_radius, max_depth,
+    core_spacing, core_anchor, normal_corner, workers, progress,
+) -> CylinderPass:
+    """Passes 1 and 2 of :func:`robust_deformation`: the cores, their outward normals and both
+    epochs' cylinder statistics (``line`` is the centreline moved by ``-origin``)."""
+    cores, inverse = voxel_cores(todo - origin, core_spacing, core_anchor)
+    n_cores = len(cores)
+    notify(progress, "robust deformation", 0.0)
+    # spatially sorted copies make the neighbour gathers cache-friendly
+    ref_use = ref_use - origin
+    ref_order = _voxel_order(ref_use, core_spacing)
+    ref_use = ref_use[ref_order]
+    order = _voxel_order(cmp_use - origin, core_spacing)
+    cmp_use = cmp_use[order] - origin
+    if measure is None:
+        cmp_core = (inverse if cmp_mask is None else inverse[cmp_mask])[order]
+
+    # pass 1: outward plane normal of the reference around each core (voxel moments)
+    if normal_corner is None:
+        normal_corner = normal_grid_corner(ref_use, cores, core_spacing, normal_radius)
+    normal, variation, thickness = _voxel_normals(
+        ref_use, cores, core_spacing, normal_radius, np.asarray(normal_corner, dtype=np.float64)
+    )
+    index_radius = float(np.hypot(cylinder_radius, min(max_depth, cylinder_radius)))
+    ref_epoch = _Epoch(ref_use, np.empty((0, 3), np.float32), index_radius)
+    # pass 1b: cores next to an edge of the section, planar on a smaller ball
+    variation_wide = variation.copy()
+    edge_ids = _edge_planes(
+        ref_epoch, cores, normal, variation, thickness, _EDGE_SCALE * normal_radius, workers
+    )
+    radial = _outward(line, cores, workers)
+    flat = ~np.isfinite(variation)
+    normal[flat] = radial[flat]
+    normal[np.einsum("ij,ij->i", normal, radial) < 0] *= -1.0
+    notify(progress, "robust deformation", 0.2)
+    # every point carries the normal of its nearest core: cylinders keep only the points of
+    # the same surface (a wall cylinder near a corner drops the roof's points)
+    core_tree = cKDTree(cores)
+    _, near = core_tree.query(ref_use, workers=workers)
+    if measure is not None:
+        _, cmp_core = core_tree.query(cmp_use, workers=workers)
+    n32 = normal.astype(np.float32)
+    ref_epoch.normals = np.ascontiguousarray(n32[near])
+    cmp_epoch = _Epoch(cmp_use, n32[cmp_core], index_radius)
+
+    # pass 2: cylinder statistics of both epochs; the core lies on the compared surface, so
+    # the compared points are taken within a short depth, and the reference first within the
+    # same depth, then within max_depth where its surface was not found there
+    short = min(max_depth, cylinder_radius)
+    out = {k: np.zeros(n_cores) for k in ("mr", "sr", "nr", "or", "mc", "sc", "nc", "oc")}
+    out["or"], out["oc"] = np.zeros((n_cores, 3)), np.zeros((n_cores, 3))
+    radius_used = np.full(n_cores, cylinder_radius)
+    depth_used = np.full(n_cores, short)
+    n_deep = 0
+    for start in range(0, n_cores, _CHUNK):
+        sl = slice(start, min(start + _CHUNK, n_cores))
+        c, nrm = cores[sl], normal[sl]
+        stats = [
+            *_epoch_stats(ref_epoch, c, nrm, cylinder_radius, short),
+            *_epoch_stats(cmp_epoch, c, nrm, cylinder_radius, short),
+        ]
+        if max_depth > short:
+            # no reference point, or its mean close to the end of the short cylinder
+            deep = (stats[2] == 0) | ~(np.abs(stats[0]) < short - 3.0 * np.maximum(stats[1], 0.01))
+            if deep.any():
+                n_deep += int(deep.sum())
+                ref_deep = _epoch_stats(ref_epoch, c[deep], nrm[deep], cylinder_radius, max_depth)
+                for s_, w in zip(stats[:4], ref_deep, strict=True):
+                    s_[deep] = w
+                depth_used[np.arange(sl.start, sl.stop)[deep]] = max_depth
+        for key, s_ in zip(out, stats, strict=True):
+            out[key][sl] = s_
+        notify(progress, "robust deformation", 0.2 + 0.5 * sl.stop / n_cores)
+    return CylinderPass(
+        cores=cores, inverse=inverse, normal=normal, variation=variation,
+        variation_wide=variation_wide, edge_ids=np.asarray(edge_ids, dtype=np.intp), out=out,
+        radius_used=radius_used, depth_used=depth_used, n_deep=n_deep, ref_order=ref_order,
+        cmp_order=order, ref_core=near, cmp_core=np.asarray(cmp_core, dtype=np.intp),
+        _epochs=(ref_epoch, cmp_epoch),
+    )
+
+
 def _outward(centerline: Centerline, xyz: np.ndarray, workers: int) -> np.ndarray:
     """Unit vectors from the centreline towards each point, in the normal plane of the curve."""
     proj = centerline.project(xyz, workers=workers)
@@ -253,7 +426,8 @@ def robust_deformation(
     normal_corner: np.ndarray | None = None,
     typical_spread: tuple[float, float] | None = None,
     spreads_only: bool = False,
-) -> RobustDeformation:
+    resume: CylinderPass | None = None,
+) -> RobustDeformation | CylinderPass:
     """Signed deformation of every compared point with a per-point level of detection.
 
     Parameters
@@ -301,9 +475,12 @@ def robust_deformation(
         normals' voxel grid (default :func:`normal_grid_corner`) and the typical cylinder
         spreads of the reference and compared epochs (default: their medians over all cores).
     spreads_only : bool
-        Stop after the cylinder statistics and return ``(cores, inverse, sigma_ref,
-        sigma_cmp)``: the core points (input frame), the core of each compared point and the
-        spreads whose medians are ``typical_spread``.
+        Stop after the cylinder statistics and return them as a :class:`CylinderPass`
+        (the spreads whose medians are ``typical_spread`` among them).
+    resume : CylinderPass, optional
+        The state a ``spreads_only`` call returned for the same clouds, masks, ``measure``
+        and parameters (a tile's second pass, after the survey's typical spreads are known):
+        passes 1 and 2 are not computed again. Its sizes are checked against the inputs'.
 
     Returns
     -------
@@ -346,77 +523,23 @@ def robust_deformation(
         if not measure.any():
             return _nothing_measured(n_all, cmp_.shape[1])
     todo = cmp_ if measure is None else cmp_[measure]
-    cores, inverse = voxel_cores(todo - origin, core_spacing, core_anchor)
-    n_cores = len(cores)
-    notify(progress, "robust deformation", 0.0)
-    # spatially sorted copies make the neighbour gathers cache-friendly
-    ref_use = ref_use - origin
-    ref_use = ref_use[_voxel_order(ref_use, core_spacing)]
-    order = _voxel_order(cmp_use - origin, core_spacing)
-    cmp_use = cmp_use[order] - origin
-    if measure is None:
-        cmp_core = (inverse if cmp_mask is None else inverse[cmp_mask])[order]
-
-    # pass 1: outward plane normal of the reference around each core (voxel moments)
-    if normal_corner is None:
-        normal_corner = normal_grid_corner(ref_use, cores, core_spacing, normal_radius)
-    normal, variation, thickness = _voxel_normals(
-        ref_use, cores, core_spacing, normal_radius, np.asarray(normal_corner, dtype=np.float64)
-    )
     index_radius = float(np.hypot(cylinder_radius, min(max_depth, cylinder_radius)))
-    ref_epoch = _Epoch(ref_use, np.empty((0, 3), np.float32), index_radius)
-    # pass 1b: cores next to an edge of the section, planar on a smaller ball
-    variation_wide = variation.copy()
-    edge_ids = _edge_planes(
-        ref_epoch, cores, normal, variation, thickness, _EDGE_SCALE * normal_radius, workers
-    )
-    radial = _outward(line, cores, workers)
-    flat = ~np.isfinite(variation)
-    normal[flat] = radial[flat]
-    normal[np.einsum("ij,ij->i", normal, radial) < 0] *= -1.0
-    notify(progress, "robust deformation", 0.2)
-    # every point carries the normal of its nearest core: cylinders keep only the points of
-    # the same surface (a wall cylinder near a corner drops the roof's points)
-    core_tree = cKDTree(cores)
-    _, near = core_tree.query(ref_use, workers=workers)
-    if measure is not None:
-        _, cmp_core = core_tree.query(cmp_use, workers=workers)
-    n32 = normal.astype(np.float32)
-    ref_epoch.normals = np.ascontiguousarray(n32[near])
-    cmp_epoch = _Epoch(cmp_use, n32[cmp_core], index_radius)
-    del near
-
-    # pass 2: cylinder statistics of both epochs; the core lies on the compared surface, so
-    # the compared points are taken within a short depth, and the reference first within the
-    # same depth, then within max_depth where its surface was not found there
     short = min(max_depth, cylinder_radius)
-    out = {k: np.zeros(n_cores) for k in ("mr", "sr", "nr", "or", "mc", "sc", "nc", "oc")}
-    out["or"], out["oc"] = np.zeros((n_cores, 3)), np.zeros((n_cores, 3))
-    radius_used = np.full(n_cores, cylinder_radius)
-    depth_used = np.full(n_cores, short)
-    n_deep = 0
-    for start in range(0, n_cores, _CHUNK):
-        sl = slice(start, min(start + _CHUNK, n_cores))
-        c, nrm = cores[sl], normal[sl]
-        stats = [
-            *_epoch_stats(ref_epoch, c, nrm, cylinder_radius, short),
-            *_epoch_stats(cmp_epoch, c, nrm, cylinder_radius, short),
-        ]
-        if max_depth > short:
-            # no reference point, or its mean close to the end of the short cylinder
-            deep = (stats[2] == 0) | ~(np.abs(stats[0]) < short - 3.0 * np.maximum(stats[1], 0.01))
-            if deep.any():
-                n_deep += int(deep.sum())
-                ref_deep = _epoch_stats(ref_epoch, c[deep], nrm[deep], cylinder_radius, max_depth)
-                for s_, w in zip(stats[:4], ref_deep, strict=True):
-                    s_[deep] = w
-                depth_used[np.arange(sl.start, sl.stop)[deep]] = max_depth
-        for key, s_ in zip(out, stats, strict=True):
-            out[key][sl] = s_
-        notify(progress, "robust deformation", 0.2 + 0.5 * sl.stop / n_cores)
-
+    if resume is None:
+        state = _cylinder_pass(
+            ref_use, cmp_use, todo, line, origin, cmp_mask=cmp_mask, measure=measure,
+            normal_radius=normal_radius, cylinder_radius=cylinder_radius, max_depth=max_depth,
+            core_spacing=core_spacing, core_anchor=core_anchor, normal_corner=normal_corner,
+            workers=workers, progress=progress,
+        )
+    else:
+        state = resume.checked(len(ref_use), len(cmp_use), len(todo))
     if spreads_only:
-        return cores + origin, inverse, out["sr"], out["sc"]
+        return state
+    cores, inverse, normal = state.cores, state.inverse, state.normal
+    variation, variation_wide, edge_ids = state.variation, state.variation_wide, state.edge_ids
+    out, radius_used, depth_used = state.out, state.radius_used, state.depth_used
+    n_deep, n_cores = state.n_deep, len(state.cores)
 
     # pass 3, adaptive scale: cores with too few points of an epoch (but some of each: a core
     # without any is off the surface, or its surface has no counterpart) or a cylinder much
@@ -448,6 +571,8 @@ def robust_deformation(
     variation[edge_back] = variation_wide[edge_back]
     weak &= ~edge_back
     wide_ids = np.flatnonzero(weak)
+    if len(wide_ids):
+        ref_epoch, cmp_epoch = state.epochs(ref_use, cmp_use, origin, index_radius)
     for start in range(0, len(wide_ids), _CHUNK):
         ids = wide_ids[start : start + _CHUNK]
         c, nrm, rw = cores[ids], normal[ids], 2.0 * cylinder_radius
