@@ -757,8 +757,11 @@ def run_cc_m3c2(ref, cmp_, line, ctx):
     tunnel)."""
     exe = CC_M3C2 / "bin" / "CloudCompare"
     params = CC_M3C2_PARAMS / "m3c2_params.txt"
-    if not exe.is_file() or not params.is_file():
+    if not exe.is_file():
         raise RuntimeError(f"CloudCompare M3C2 not found ({exe}; unpack the tarball to /opt)")
+    if not params.is_file():
+        raise RuntimeError(f"M3C2 parameter file not found ({params}: ../shared beside the "
+                           "checkout)")
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)
         o = ref.mean(axis=0)  # local origin: CloudCompare stores float32 coordinates

@@ -50,7 +50,7 @@ LARGE = 20e6  # points per epoch beyond which the pair is written stretch by str
 def _run(
     cmd: list[str], env: dict[str, str] | None = None, timeout: float | None = None
 ) -> tuple[float, float, int, str]:
-    """Wall time (s), peak RSS (GB), exit code and the last lines of stderr of a process
+    """Wall time (s), peak RSS (GiB, 2**30 bytes), exit code and the last lines of stderr of a process
     (killed after ``timeout`` seconds, exit code -9)."""
     import threading
 
@@ -133,8 +133,8 @@ def main() -> None:
         libs = Path(args.cloudcompare).resolve().parent.parent / "lib" / "cloudcompare"
         if libs.is_dir():
             cc_env["LD_LIBRARY_PATH"] = str(libs)
-    lines = ["| points (ref + cmp) | length | format | detect wall s | detect peak RSS GB | "
-             "C2C wall s | C2C peak RSS GB | detect / C2C time | load avg |",
+    lines = ["| points (ref + cmp) | length | format | detect wall s | detect peak RSS GiB | "
+             "C2C wall s | C2C peak RSS GiB | detect / C2C time | load avg |",
              "|---|---|---|---|---|---|---|---|---|"]
     for row in args.rows.split(","):
         length = int(row)
