@@ -50,8 +50,8 @@ LARGE = 20e6  # points per epoch beyond which the pair is written stretch by str
 def _run(
     cmd: list[str], env: dict[str, str] | None = None, timeout: float | None = None
 ) -> tuple[float, float, int, str]:
-    """Wall time (s), peak RSS (GiB, 2**30 bytes), exit code and the last lines of stderr of a process
-    (killed after ``timeout`` seconds, exit code -9)."""
+    """Wall time (s), peak RSS (GiB, 2**30 bytes), exit code and the last lines of stderr of a
+    process (killed after ``timeout`` seconds, exit code -9)."""
     import threading
 
     t = time.perf_counter()

@@ -285,3 +285,32 @@ def test_surface_labels_with_a_stray_chainage_far_off() -> None:
     far = sections.surface_labels(np.r_[s, 5.0e7], np.r_[lat, 1.0], np.r_[ver, 0.0], step=0.1)
     np.testing.assert_array_equal(far[:n], sections.surface_labels(s, lat, ver, step=0.1))
     assert far[n] == sections.LEFT_WALL
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 10_001])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_shell_moments_are_numpys_figures_without_a_float64_copy(n, dtype, monkeypatch):
+    """The summary's statistics, summed a chunk at a time (chunks of 1,000 here): NumPy's
+    mean, std, min, max and linear percentiles of the float64 values."""
+    from tunneldef import pipeline
+
+    monkeypatch.setattr(pipeline, "_MOMENT_CHUNK", 1000)
+    rng = np.random.default_rng(n)
+    d = rng.normal(0.001, 0.01, 2 * n + 1).astype(dtype)
+    d[rng.random(d.size) < 0.1] = np.nan
+    keep = rng.random(d.size) < 0.5
+    d[0], keep[0] = 0.002, True  # at least one value
+    v = d[keep & np.isfinite(d)]
+    n = v.size
+    want = v.astype(np.float64)
+    got = pipeline.shell_moments(d, keep)
+    assert got["count"] == n
+    assert got["mean"] == pytest.approx(want.mean(), rel=1e-12, abs=1e-18)
+    assert got["std"] == pytest.approx(want.std(), rel=1e-12, abs=1e-18)
+    assert (got["min"], got["max"]) == (want.min(), want.max())
+    a = np.abs(want)
+    assert got["mean_abs"] == pytest.approx(a.mean(), rel=1e-12)
+    p50, p95 = np.percentile(a, [50, 95])
+    assert (got["p50_abs"], got["p95_abs"]) == (p50, p95)
+    assert pipeline.shell_moments(d, np.zeros(d.size, bool)) == {"count": 0}
+    assert pipeline.shell_moments(np.empty(0, dtype)) == {"count": 0}

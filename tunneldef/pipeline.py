@@ -121,6 +121,58 @@ def is_network(clouds: Any, config: Config | None = None) -> bool:
     return False
 
 
+_MOMENT_CHUNK = 4_000_000  # values summed at once by shell_moments
+
+
+def shell_moments(d: np.ndarray, keep: np.ndarray | None = None) -> dict[str, Any]:
+    """Count, mean, standard deviation, mean / median / p95 of the absolute value, min and max
+    of the finite values of ``d`` where ``keep`` (all by default).
+
+    Sums run in float64 a few million values at a time, and the percentiles are NumPy's
+    linear ones on the order statistics of one array of ``|v|`` in ``d``'s dtype: a survey's
+    field of 55 M float32 values needs no float64 copy of it, no mask as long as it, nor
+    NumPy's ``std`` temporary of the same size.
+    """
+    n_all = len(d)
+
+    def chunks():
+        for a in range(0, n_all, _MOMENT_CHUNK):
+            v = d[a:a + _MOMENT_CHUNK]
+            ok = np.isfinite(v)
+            if keep is not None:
+                ok &= keep[a:a + _MOMENT_CHUNK]
+            yield v[ok]
+
+    n, total, lo, hi = 0, 0.0, np.inf, -np.inf
+    for v in chunks():
+        if v.size:
+            n += v.size
+            total += float(np.sum(v, dtype=np.float64))
+            lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
+    if n == 0:
+        return {"count": 0}
+    mean = total / n
+    a = np.empty(n, dtype=d.dtype)
+    ss = total_abs = 0.0
+    at = 0
+    for v in chunks():
+        ss += float(np.sum((v.astype(np.float64) - mean) ** 2))
+        np.abs(v, out=a[at:at + v.size])
+        total_abs += float(np.sum(a[at:at + v.size], dtype=np.float64))
+        at += v.size
+    pos = [(n - 1) * q for q in (0.50, 0.95)]
+    ks = sorted({int(p) for p in pos} | {min(int(p) + 1, n - 1) for p in pos})
+    a.partition(ks)
+    pct = []
+    for p in pos:
+        k = int(p)
+        x0, x1, t = float(a[k]), float(a[min(k + 1, n - 1)]), p - k
+        # NumPy's _lerp: from the nearer end
+        pct.append(x1 - (x1 - x0) * (1.0 - t) if t >= 0.5 else x0 + (x1 - x0) * t)
+    return {"count": n, "mean": mean, "std": float(np.sqrt(ss / n)), "mean_abs": total_abs / n,
+            "p50_abs": pct[0], "p95_abs": pct[1], "min": lo, "max": hi}
+
+
 @dataclass
 class RegisteredPair:
     """Both epochs' centreline extractions and the registration of compared onto reference."""
@@ -245,17 +297,8 @@ class Result:
         """Global statistics of the signed deformation on shell points (m)."""
         d = np.asarray(self.cloud.fields["deformation"])
         shell = np.asarray(self.cloud.fields.get("shell", np.ones(len(d))), dtype=bool)
-        # only the shell's finite values in float64, and |v| in place of v: on a large survey
-        # no float64 copy of the whole field, of |v| or of the percentiles' input
-        v = d[shell & np.isfinite(d)].astype(np.float64)
-        out: dict[str, Any] = {"count": int(v.size), "points": int(d.size)}
-        if v.size:
-            mean, std, lo, hi = float(v.mean()), float(v.std()), float(v.min()), float(v.max())
-            a = np.abs(v, out=v)
-            mean_abs = float(a.mean())
-            p50, p95 = np.percentile(a, [50, 95], overwrite_input=True)
-            out.update(mean=mean, std=std, mean_abs=mean_abs, p50_abs=float(p50),
-                       p95_abs=float(p95), min=lo, max=hi)
+        out: dict[str, Any] = {"count": 0, "points": int(d.size)}
+        out.update(shell_moments(d, shell))
         danger = np.asarray(self.cloud.fields["danger"])
         out["danger_points"] = int(danger.sum())
         if "significant" in self.cloud.fields:
