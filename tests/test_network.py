@@ -632,3 +632,38 @@ def test_a_stub_whose_curve_ends_short_of_its_junction_is_a_dead_end() -> None:
                                                       (1.5,))), {})
     assert inner.is_dead_end(1) is False  # left from both ends
     assert net.without({1: "unreadable"}).meta["left_out"][0]["edge"] == "edge-1"
+
+
+def test_a_drift_split_at_a_junction_does_not_take_its_own_continuation_for_a_branch() -> None:
+    """Zones at a junction where the skeleton split a straight drift into two edges: each leg's
+    zone is set by the cross-cut, not by the other leg, even when both legs' chords bend into
+    the cross-cut's fork (27 degrees between them, as in sweep case 19000003, where glancing-
+    angle zones of 11.8 m covered the 18 m between two junctions and the survey was refused)."""
+    from tunneldef.centerline.network import _Edge, _zones
+    from tunneldef.curve import Centerline
+
+    def line(a, b):
+        return Centerline.from_polyline(np.array([a, b], dtype=float), step=0.1)
+
+    skew = np.radians(13.5)  # each leg's chord bent towards the fork
+    node = np.zeros(3)
+    legs = [line([-20.0 * np.cos(skew), 20.0 * np.sin(skew), 0.0], node),  # ends at the node
+            line(node, [20.0 * np.cos(skew), 20.0 * np.sin(skew), 0.0])]  # starts there
+    xc = line(node, [10.0 * np.cos(np.radians(58)), 10.0 * np.sin(np.radians(58)), 0.0])
+    curves = [*legs, xc]
+    hw = (2.7, 2.7, 2.15)
+    edges = [_Edge(np.zeros((0, 2)), [], [], c, h, 0.0) for c, h in zip(curves, hw, strict=True)]
+    zones = _zones(edges, {0: node}, curves, {0: [0, 1, 2]}, 0.5)
+    for k, s in ((0, 20.0), (1, 0.0)):
+        (a, b), = zones[k]
+        half = 0.5 * (b - a)
+        assert a <= s <= b
+        # the cross-cut meets each leg at 44.5-71.5 degrees: at most 2.15 / sin 44.5 +
+        # 2.7 cos 44.5 / sin 44.5 + 0.5 = 6.3 m (the other leg at 153 degrees gave 11.8 m)
+        assert half < 6.5, half
+    # a glancing branch (leaving the node the same way as a leg) still widens that leg's zone
+    glance = line(node, [20.0 * np.cos(np.radians(25)), 20.0 * np.sin(np.radians(25)), 0.0])
+    edges.append(_Edge(np.zeros((0, 2)), [], [], glance, 2.15, 0.0))
+    zones = _zones(edges, {0: node}, [*curves, glance], {0: [0, 1, 2, 3]}, 0.5)
+    (a, b), = zones[1]
+    assert 0.5 * (b - a) > 8.0
