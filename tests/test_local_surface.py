@@ -341,6 +341,11 @@ def test_resuming_from_a_saved_cylinder_pass_gives_the_same_values(tmp_path, mas
     loaded = CylinderPass.load(str(tmp_path / "c.npz"))
     np.testing.assert_array_equal(loaded.spread_ref, state.spread_ref)
     resumed = _run(pair, resume=loaded, **kw)
+    fresh = CylinderPass.load(str(tmp_path / "c.npz"))  # resuming leaves the state as it was
+    for key, v in fresh.out.items():
+        np.testing.assert_array_equal(loaded.out[key], v, key)
+    np.testing.assert_array_equal(loaded.variation, fresh.variation)
+    np.testing.assert_array_equal(loaded.radius_used, fresh.radius_used)
     for name in ("deformation", "lod95", "significant", "normal", "n_ref", "n_cmp",
                  "sigma_ref", "sigma_cmp", "core", "core_deformation", "core_lod95",
                  "core_radius", "core_ref_depth"):

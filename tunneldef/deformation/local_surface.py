@@ -101,6 +101,7 @@ support, pooling, level of detection) over one set of core points.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import warnings
 from dataclasses import dataclass, field
@@ -532,8 +533,12 @@ def robust_deformation(
             core_spacing=core_spacing, core_anchor=core_anchor, normal_corner=normal_corner,
             workers=workers, progress=progress,
         )
-    else:
-        state = resume.checked(len(ref_use), len(cmp_use), len(todo))
+    else:  # (the passes below change some of its per-core arrays: the caller's stay as given)
+        state = dataclasses.replace(
+            resume.checked(len(ref_use), len(cmp_use), len(todo)),
+            variation=resume.variation.copy(), radius_used=resume.radius_used.copy(),
+            out={k: v.copy() for k, v in resume.out.items()},
+        )
     if spreads_only:
         return state
     cores, inverse, normal = state.cores, state.inverse, state.normal
