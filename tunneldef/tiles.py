@@ -161,11 +161,16 @@ def _load(folder: str, *names: str) -> list[np.ndarray]:
     return [np.load(os.path.join(folder, f"{n}.npy")) for n in names]
 
 
-def _save(folder: str, name: str, a: np.ndarray) -> None:
-    """Write atomically (a task run again after a lost worker rewrites the same file)."""
-    tmp = os.path.join(folder, f".{name}.{os.getpid()}.tmp.npy")
-    np.save(tmp, a)
-    os.replace(tmp, os.path.join(folder, f"{name}.npy"))
+def _save(folder: str, name: str, a: Any) -> None:
+    """Write atomically (a task run again after a lost worker rewrites the same file): an
+    array as ``name.npy``, or an object with a ``save(path)`` method as ``name.npz``."""
+    ext = "npy" if isinstance(a, np.ndarray) else "npz"
+    tmp = os.path.join(folder, f".{name}.{os.getpid()}.tmp.{ext}")
+    if ext == "npy":
+        np.save(tmp, a)
+    else:
+        a.save(tmp)
+    os.replace(tmp, os.path.join(folder, f"{name}.{ext}"))
 
 
 def _context(workdir: str) -> tuple[Centerline, DeformationConfig]:
@@ -215,9 +220,7 @@ def _spreads_task(workdir: str, folder: str, inputs: dict[str, Any]) -> int:
     mine = cmp_owned[cmp_shell][first]
     _save(folder, "spread_ref", state.spread_ref[mine])
     _save(folder, "spread_cmp", state.spread_cmp[mine])
-    tmp = os.path.join(folder, f".cylinders.{os.getpid()}.tmp.npz")
-    state.save(tmp)
-    os.replace(tmp, os.path.join(folder, "cylinders.npz"))
+    _save(folder, "cylinders", state)
     return int(mine.sum())
 
 
