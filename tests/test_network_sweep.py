@@ -57,3 +57,15 @@ def test_the_main_drift_at_a_cross_cuts_mouth_follows_the_drift_correction() -> 
     registration was right (2.9 mm). They now take their neighbours' correction."""
     case = run_case(draw(17000005, 400_000))
     assert case.outcome == "correct", table([case])
+
+
+def test_a_main_drift_that_goes_on_up_a_ramp_is_not_slid_onto_the_other_main_drift() -> None:
+    """Sweep case 19000008: a 52 m horseshoe whose compared survey goes on up a ramp that is
+    straight in plan, with no junction both surveys walked. Laid along the reference's main
+    drift, the compared curves overlap it most when slid back by the ramp's length (the
+    ramp's climb does not show in plan), so the twelve distinct poses judged by their points
+    were all slides of that plateau, the right one was not among them, and the registration
+    ended 6 m along the drift (refused by its check). The pool judged by the points is now
+    wide enough to hold it."""
+    case = run_case(draw(19000008, 400_000))
+    assert case.outcome == "correct", table([case])

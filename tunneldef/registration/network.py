@@ -155,19 +155,35 @@ def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np
     return t
 
 
-def _plan_dirs(net: CenterlineNetwork, min_length: float) -> list[tuple[np.ndarray, float,
-                                                                         np.ndarray, float]]:
-    """Per edge of at least ``min_length`` metres: the centroid of its samples (3,), its
-    plan heading (radians, the principal direction of its samples in plan), and its
-    length."""
+def _plan_dirs(net: CenterlineNetwork, min_length: float, window: float = 30.0,
+               distinct_deg: float = 1.5) -> list[tuple[np.ndarray, float, np.ndarray, float]]:
+    """Per edge of at least ``min_length`` metres, its straight stretches: the centroid of
+    the samples (3,) of each ``window`` metres of the edge (half a window apart), their plan
+    heading (radians, the principal direction of the samples in plan), that direction (2,)
+    and the edge's length. Of the windows of one edge only those whose heading differs by
+    more than ``distinct_deg`` from every one kept before are kept, so a straight edge gives
+    one. The heading of a whole bent edge is none of its stretches' (a main drift that goes
+    on up a ramp and turns read 3 degrees off its straight part, which laid the two epochs'
+    main drifts across each other and left the right slide out of the candidates)."""
     out = []
+    tol = np.radians(distinct_deg)
     for e in net.edges:
         if e.length < min_length:
             continue
         p = e.centerline.point_at(np.arange(0.0, e.length + 1e-9, 1.0))
-        c = p.mean(axis=0)
-        _, _, vt = np.linalg.svd(p[:, :2] - c[:2], full_matrices=False)
-        out.append((c, float(np.arctan2(vt[0, 1], vt[0, 0])), vt[0], e.length))
+        w = int(min(window, e.length))
+        starts = range(0, max(len(p) - w, 0) + 1, max(w // 2, 1))
+        kept: list[float] = []
+        for a in starts:
+            q = p[a: a + w + 1]
+            c = q.mean(axis=0)
+            _, _, vt = np.linalg.svd(q[:, :2] - c[:2], full_matrices=False)
+            heading = float(np.arctan2(vt[0, 1], vt[0, 0]))
+            # headings are axial (a line, not a way along it): compare modulo pi
+            if any(abs(np.angle(np.exp(2j * (heading - h)))) / 2 < tol for h in kept):
+                continue
+            kept.append(heading)
+            out.append((c, heading, vt[0], e.length))
     return out
 
 
@@ -183,11 +199,12 @@ def _candidates(ref_net: CenterlineNetwork, cmp_net: CenterlineNetwork, cmp_s: n
     """Coarse poses (yaw about the vertical and a translation), each with its plan score.
 
     * junction onto junction, each branch direction at one onto each at the other;
-    * drift along drift: every edge of one epoch laid along every edge of the other (both
-      ways), slid along it a metre at a time. This needs no junction in either epoch: a
-      cross-cut walked in one survey only, or seen a few metres in, leaves the two
-      networks no junction in common, and the pose along the main drift then comes from
-      everything else the two share (their curves' overlap here, the surfaces later).
+    * drift along drift: every straight stretch of an edge of one epoch laid along every
+      straight stretch of the other's (both ways), slid along it a metre at a time. This
+      needs no junction in either epoch: a cross-cut walked in one survey only, or seen a
+      few metres in, leaves the two networks no junction in common, and the pose along the
+      main drift then comes from everything else the two share (their curves' overlap
+      here, the surfaces later).
     """
     out: list[tuple[float, np.ndarray]] = []
     for i, ji in enumerate(ref_net.junctions):
@@ -202,7 +219,8 @@ def _candidates(ref_net: CenterlineNetwork, cmp_net: CenterlineNetwork, cmp_s: n
             for yaw in (ra - ca, ra - ca + np.pi):
                 base = _yaw_transform(yaw, ce, re_)  # centroid onto centroid
                 moved = apply_transform(base, cmp_s)
-                offsets = np.arange(-(rl + cl) / 2, (rl + cl) / 2 + 1e-9, 1.0)
+                # the stretches' centroids may lie anywhere along their edges
+                offsets = np.arange(-(rl + cl), rl + cl + 1e-9, 1.0)
                 shift = np.zeros((len(offsets), 3))
                 shift[:, :2] = offsets[:, None] * rd[None, :]
                 pts = (moved[None, :, :] + shift[:, None, :]).reshape(-1, 3)
@@ -337,7 +355,7 @@ def register_networks(
     voxel: float = 0.1,
     fine_distance: float = 0.3,
     max_points: int = 400_000,
-    pool: int = 12,
+    pool: int = 64,
     hypotheses: int = 8,
     fit_distance: float = 0.1,
     distinct_distance: float = 10.0,
@@ -358,9 +376,13 @@ def register_networks(
     max_points : int
         Points per epoch used by the ICP (thinned at random, seeded).
     pool, hypotheses : int
-        Distinct coarse poses judged by their points after the curve alignment, and how many
-        of the best of those are carried through ICP (a quick one each, about a second); the
-        one whose points the reference explains best (:func:`_evidence`) is kept.
+        Distinct coarse poses judged by their points after the curve alignment (about 25 ms
+        each), and how many of the best of those are carried through ICP (a quick one each,
+        about a second); the one whose points the reference explains best
+        (:func:`_evidence`) is kept. The pool is wide because the curves' overlap in plan
+        does not rank slides along a drift: a main drift that goes on up a ramp, straight in
+        plan, overlays the other epoch's main drift best when slid back by the ramp's length,
+        and twelve distinct slides of that plateau left the right pose out.
     fit_distance : float
         A compared point within this distance of the reference lies on it, metres.
     distinct_distance : float
