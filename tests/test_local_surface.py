@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.special import ndtri
 
+from tunneldef.deformation import local_surface
 from tunneldef.deformation.cylinders import _INNER_TRIM
 from tunneldef.deformation.local_surface import (
     CylinderPass,
@@ -472,3 +473,36 @@ def test_pooling_cancels_its_own_smoothing_bias_and_lowers_the_noise():
     variation[peak] = 0.1
     ids2, *_ = _pool(cores, normals, variation, truth, np.where(cores[:, 0] > 0, se, 0.001), **kw)
     assert peak not in ids2 and np.all(cores[ids2, 0] > 0)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_sparse_cylinder_is_widened_only_as_far_as_it_needs(seed, monkeypatch):
+    """At 110 points/m^2 a 0.2 m cylinder holds about 14 points of an epoch, fewer than
+    ``min_points`` (20); twice the area holds enough. Widened straight to twice the radius
+    the cylinders read a 40 mm bulge 1.2 m wide as 28-29 mm (seeds 1-3); widened by sqrt(2)
+    first they read it 30-34 mm, and the unchanged shell stays as quiet."""
+    a = 0.040
+    spec = PairSpec(
+        tunnel=TunnelSpec(length=LENGTH, noise_sigma=0.012, density=110.0,
+                          section=SectionSpec("rectangle", 4.6, 3.0)),
+        deformations=(DeformationSpec(kind="wall_bulge", chainage=6.0, length=3.0, width=1.2,
+                                      amplitude=a, side="right"),),
+        cmp_shift=0.0,
+        seed=seed,
+    )
+    pair = make_pair(spec)
+    tr = pair.truth
+    core = (tr.label == 0) & (tr.displacement <= -0.8 * a)
+    true = np.median(tr.displacement[core])
+    quiet = _unchanged(tr)
+    r = _run(pair)
+    radius = np.round(r.core_radius, 3)
+    assert np.mean(radius == round(0.2 * np.sqrt(2.0), 3)) >= 0.5
+    assert r.meta["mid_cylinder_cores"] == int(np.sum(radius == round(0.2 * np.sqrt(2.0), 3)))
+    d = np.abs(r.deformation[quiet])
+    assert np.mean(d[np.isfinite(d)] > 0.010) <= 0.005
+    new = np.nanmedian(r.deformation[core])
+    monkeypatch.setattr(local_surface, "_MID_WIDTH", 2.0)  # straight to twice the radius
+    old = np.nanmedian(_run(pair).deformation[core])
+    assert abs(new - true) < abs(old - true) - 0.0008
+    assert abs(new - true) <= 0.18 * abs(true)
