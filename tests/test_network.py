@@ -667,3 +667,32 @@ def test_a_drift_split_at_a_junction_does_not_take_its_own_continuation_for_a_br
     zones = _zones(edges, {0: node}, [*curves, glance], {0: [0, 1, 2, 3]}, 0.5)
     (a, b), = zones[1]
     assert 0.5 * (b - a) > 8.0
+
+
+def test_a_crossing_edge_with_a_few_centres_either_side_of_its_junction_keeps_a_line() -> None:
+    """Sweep case 20000005: an oblique crossing's edge had 5 usable centres, 2 and 3 either
+    side of a 15 m junction zone; a cubic through them was 45.8 m long for 18.6 m of centres,
+    and the whole network was refused as having stray points. So few, so gappy centres now
+    give the edge the axis moved onto them; their scatter about it is still checked."""
+    from tunneldef.centerline.extract import SliceRecord
+    from tunneldef.centerline.network import _fit_edge
+    from tunneldef.config import CenterlineConfig
+    from tunneldef.curve import Centerline
+
+    centres = np.array([[46.454, 5.746, 0.043], [47.229, 4.892, 0.041], [56.105, -5.152, 0.045],
+                        [56.769, -5.9, 0.04], [58.999, -7.95, 0.039]])
+    way = (centres[-1] - centres[0]) / np.linalg.norm(centres[-1] - centres[0])
+    start = centres[0] - 1.4 * way + np.array([0.3, 0.3, 0.0])  # the skeleton's: 0.4 m off
+    axis = Centerline.from_polyline(start + np.linspace(0.0, 21.0, 50)[:, None] * way)
+    records = [SliceRecord(station=float(s), centre=c, ok=True)
+               for s, c in zip([1.4, 2.4, 17.4, 18.4, 21.4], centres, strict=True)]
+    records += [SliceRecord(station=float(s), reason="junction") for s in range(4, 17)]
+    curve = _fit_edge(records, CenterlineConfig(), "edge 3", axis)
+    assert curve.meta["method"] == "axis_offset" and curve.meta["sparse_centres"]
+    assert not curve.meta.get("short_branch")  # so the scatter check applies
+    assert curve.length == pytest.approx(20.0, abs=0.5)
+    # the axis moved by the centres' median offset: through the middle of them, parallel
+    dist = curve.project(centres).distance
+    assert np.median(dist) < 0.01 and dist.max() < 0.3
+    chord = curve.points[-1] - curve.points[0]
+    assert abs(chord @ way) / np.linalg.norm(chord) > 0.9999

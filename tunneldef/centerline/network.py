@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 from ..cloud import check_points
 from ..config import CenterlineConfig, NetworkConfig, SlicingConfig
 from ..curve import Centerline
-from ..errors import NetworkError, NotATunnelError
+from ..errors import ImplausibleExtentError, NetworkError, NotATunnelError
 from ..network import CenterlineNetwork, Junction, NetworkEdge
 from ..progress import ProgressCallback, notify
 from ..spatial import random_keep
@@ -449,28 +449,35 @@ def _slice_edge(
     return records, shape
 
 
+def _on_axis(ok: list[SliceRecord], n_records: int, c: CenterlineConfig, axis: Centerline,
+             **meta: object) -> Centerline:
+    """The axis the edge was sliced along, moved onto the used centres (their median lateral
+    and vertical offset), over the stations they span: the curve of an edge whose centres are
+    too few or too gappy for one of its own."""
+    st = np.array([r.station for r in ok])
+    pr = axis.project(np.array([r.centre for r in ok]))
+    s = np.arange(st.min(), st.max() + c.sample_step / 2, c.sample_step)
+    _, lat, ver = axis.frame_at(s)
+    pts = (axis.point_at(s) + float(np.median(pr.lateral)) * lat
+           + float(np.median(pr.vertical)) * ver)
+    cl = Centerline.from_polyline(pts, step=c.sample_step,
+                                  centres=np.array([r.centre for r in ok]))
+    cl.meta.update({"method": "axis_offset", "n_slices": n_records, "n_used": len(ok), **meta})
+    for r in ok:
+        r.weight = 1.0
+    return cl
+
+
 def _fit_edge(
     records: list[SliceRecord], c: CenterlineConfig, name: str, axis: Centerline
 ) -> Centerline:
     ok = [r for r in records if r.ok]
-    if MIN_LINE_SLICES <= len(ok) < max(c.min_slices, c.degree + 1):
+    least = max(c.min_slices, c.degree + 1)
+    if MIN_LINE_SLICES <= len(ok) < least:
         # a short branch (a few metres beyond its junction), too few centres for a curve or
-        # even a direction: the axis it was sliced along, moved onto the centres (median
-        # lateral and vertical offset)
-        st = np.array([r.station for r in ok])
-        pr = axis.project(np.array([r.centre for r in ok]))
-        s = np.arange(st.min(), st.max() + c.sample_step / 2, c.sample_step)
-        _, lat, ver = axis.frame_at(s)
-        pts = (axis.point_at(s) + float(np.median(pr.lateral)) * lat
-               + float(np.median(pr.vertical)) * ver)
-        cl = Centerline.from_polyline(pts, step=c.sample_step,
-                                      centres=np.array([r.centre for r in ok]))
-        cl.meta.update({"method": "axis_offset", "n_slices": len(records), "n_used": len(ok),
-                        "short_branch": True})
-        for r in ok:
-            r.weight = 1.0
-        return cl
-    if len(ok) < max(c.min_slices, c.degree + 1):
+        # even a direction: the axis it was sliced along, moved onto the centres
+        return _on_axis(ok, len(records), c, axis, short_branch=True)
+    if len(ok) < least:
         common = rejection_summary(records)
         raise NetworkError(
             f"{name}: only {len(ok)} of {len(records)} slices show a tunnel section "
@@ -481,16 +488,27 @@ def _fit_edge(
     # slices fail) are smoothed, not interpolated
     spacing = max(c.ctrl_spacing, float(st[-1] - st[0]) / max(len(ok) // 2 - c.degree, 1))
     # then the stiffest curve that follows the centres' course (bends keep a flexible one)
-    cl, fit = fit_stiffest(
-        np.array([r.centre for r in ok]),
-        params=st,
-        degree=c.degree,
-        min_spacing=spacing,
-        max_spacing=max(spacing, c.max_ctrl_spacing),
-        max_misfit=c.max_misfit,
-        sample_step=c.sample_step,
-        meta={"n_slices": len(records), "n_used": len(ok)},
-    )
+    try:
+        cl, fit = fit_stiffest(
+            np.array([r.centre for r in ok]),
+            params=st,
+            degree=c.degree,
+            min_spacing=spacing,
+            max_spacing=max(spacing, c.max_ctrl_spacing),
+            max_misfit=c.max_misfit,
+            sample_step=c.sample_step,
+            meta={"n_slices": len(records), "n_used": len(ok)},
+        )
+    except ImplausibleExtentError:
+        if len(ok) >= 2 * least:
+            raise
+        # a handful of centres in two clusters either side of a long junction zone (an
+        # oblique crossing: 2 and 3 centres 15 m apart) swing a cubic through them 2.5 times
+        # the length of the centres' path; the axis through them is the edge's curve, and its
+        # centres' scatter about it is still checked
+        logger.info("%s: %d centres too few and gappy for a curve; the axis moved onto them",
+                    name, len(ok))
+        return _on_axis(ok, len(records), c, axis, sparse_centres=True)
     for r, w in zip(ok, fit.data_weights, strict=True):
         r.weight = float(w)
     return cl
