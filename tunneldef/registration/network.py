@@ -172,7 +172,8 @@ def _plan_dirs(net: CenterlineNetwork, min_length: float, window: float = 30.0,
             continue
         p = e.centerline.point_at(np.arange(0.0, e.length + 1e-9, 1.0))
         w = int(min(window, e.length))
-        starts = range(0, max(len(p) - w, 0) + 1, max(w // 2, 1))
+        last = max(len(p) - 1 - w, 0)  # the final window ends at the edge's end
+        starts = sorted({*range(0, last + 1, max(w // 2, 1)), last})
         kept: list[float] = []
         for a in starts:
             q = p[a: a + w + 1]
