@@ -29,8 +29,8 @@ from ..spatial import query_workers
 from .kernels import candidate_terms, nearest_two, slide_residuals
 
 __all__ = [
-    "AxialShift", "coarse_shift", "fine_shift", "noise_kernel", "section_image",
-    "concurrent_slides",
+    "AxialShift", "CurveShift", "coarse_shift", "curve_shift", "fine_shift", "noise_kernel",
+    "section_image", "concurrent_slides", "translation_fit",
 ]
 
 logger = logging.getLogger(__name__)
@@ -197,6 +197,152 @@ def coarse_shift(
     if outside.any():
         spread = max(spread, float(np.max(np.abs(shifts[outside] - shifts[best])) * step))
     return float(shifts[best] * step), spread
+
+
+@dataclass(frozen=True)
+class CurveShift:
+    """Result of :func:`curve_shift`.
+
+    Attributes
+    ----------
+    shift : float
+        Slide, metres, from where the current pose lays the compared curve's middle on the
+        reference curve (0 when not informative).
+    uncertainty : float
+        Metres: the slide at which the curves' rigid misfit grows by their own noise (``inf``
+        when it does not grow, or another slide matches about as well).
+    informative : bool
+        True when the curves' shapes fix the position along the axis.
+    rms : float
+        Rigid misfit of the two curves at the best slide, metres (their noise).
+    rise : float
+        Growth of the misfit per metre of slide away from the best, m/m.
+    pairs : (ndarray, ndarray) or None
+        The compared curve's samples and the reference curve's points they pair with at the
+        best slide (each (K, 3)): what a rigid fit at that slide is made on.
+    """
+
+    shift: float
+    uncertainty: float
+    informative: bool
+    rms: float = float("nan")
+    rise: float = 0.0
+    pairs: tuple[np.ndarray, np.ndarray] | None = None
+
+
+_CURVE_STEP = 0.25  # m between curve samples and between slides
+_CURVE_MARGIN = 1.0  # m kept clear of either curve's ends (a fit's ends curl)
+_CURVE_NOISE_FLOOR = 0.005  # m: the least misfit taken as the curves' noise
+_CURVE_PROBE = 1.0  # m: the slide at which the misfit's growth is read
+_CURVE_MAX_RMS = 0.05  # m: a best misfit beyond this brings no two curves of one drift together
+_CURVE_ALIKE = 3.0  # a slide farther than the basin matching within this many noises: ambiguous
+
+
+def curve_shift(
+    ref_cl: Centerline, cmp_cl: Centerline, *, search: float, min_common: float = 10.0,
+    min_overlap: float = 0.3,
+) -> CurveShift:
+    """Chainage shift from the shapes of the two centrelines (their bends and grade changes).
+
+    A drift that runs straight, bends and runs straight again is fixed along its axis by the
+    bend even where the rock is smooth and the section constant: slid along the reference
+    curve, the compared curve no longer fits it by any rigid motion. The section images of
+    :func:`coarse_shift` cannot see that, since they follow the reference curve round the
+    bend. For each slide (every 0.25 m within ``search`` of where the current pose lays the
+    compared curve's middle on the reference) and either way round, the compared curve's
+    samples are paired with the reference curve's points at their own chainage plus the slide,
+    and the RMS distance left after the best rigid motion (Kabsch) is the misfit. A bend of constant
+    radius slides along itself (the misfit stays flat) and is no feature; nor is one that
+    another slide matches within three times the curves' noise.
+
+    Parameters
+    ----------
+    ref_cl, cmp_cl : Centerline
+        The reference centreline and the compared one, roughly in place (same frame).
+    search : float
+        Largest slide searched, metres.
+    min_common, min_overlap : float
+        A slide counts only when the curves share at least ``min_common`` metres and
+        ``min_overlap`` of the compared curve's usable length.
+
+    Returns
+    -------
+    CurveShift
+        ``pairs`` at the best slide (the rigid motion is fitted to them); ``uncertainty`` is
+        the slide at which the misfit grows by the curves' own noise
+        (``max(rms, 5 mm) / rise``): the curves' errors are correlated along them over
+        metres, so no averaging over their samples is claimed.
+    """
+    none = CurveShift(0.0, float("inf"), False)
+    step, margin = _CURVE_STEP, _CURVE_MARGIN
+    sc = np.arange(margin, cmp_cl.length - margin, step)
+    if sc.size < 8 or ref_cl.length < 2 * margin + min_common:
+        return none
+    p = cmp_cl.point_at(sc)
+    # either way round (the Kabsch fit takes any rotation: a candidate whose compared epoch
+    # points the wrong way still pairs the curves right), each slide counted from where the
+    # current pose lays the compared curve's middle on the reference
+    mid = len(sc) // 2
+    at = float(ref_cl.project(p[mid : mid + 1]).chainage[0])
+    need = max(min_common, min_overlap * (sc[-1] - sc[0])) / step
+    kmax = int(np.ceil(search / step))
+    shifts = np.arange(-kmax, kmax + 1) * step
+    ways = (1.0, -1.0)
+    rms = np.full((2, len(shifts)), np.nan)
+    for w, way in enumerate(ways):
+        base = at + way * (sc - sc[mid])
+        for q, d in enumerate(shifts):
+            s = base + d
+            k = (s > margin) & (s < ref_cl.length - margin)
+            if k.sum() >= need:
+                rms[w, q] = _rigid_rms(p[k], ref_cl.point_at(s[k]))
+    ok = np.isfinite(rms)
+    if ok.sum() < 3:
+        return none
+    w, best = np.unravel_index(int(np.nanargmin(rms)), rms.shape)
+    r0 = float(rms[w, best])
+    line, fine = rms[w], ok[w]
+    noise = max(r0, _CURVE_NOISE_FLOOR)
+    h = int(round(_CURVE_PROBE / step))
+    rises = [np.sqrt(max(line[j] ** 2 - r0**2, 0.0)) / _CURVE_PROBE
+             for j in (best - h, best + h) if 0 <= j < len(line) and fine[j]]
+    if not rises or min(rises) <= 0.0:
+        return CurveShift(0.0, float("inf"), False, r0, 0.0)
+    rise = float(min(rises))
+    sigma = noise / rise
+    if r0 > _CURVE_MAX_RMS or not (best > 0 and fine[best - 1]) \
+            or not (best < len(line) - 1 and fine[best + 1]):
+        # no slide brings the curves together, or the best is at the end of the search
+        return CurveShift(0.0, float("inf"), False, r0, rise)
+    # sub-bin: the vertex of the parabola through the misfits' squares around the best
+    shift = float(shifts[best])
+    a_, b_, c_ = line[best - 1] ** 2, line[best] ** 2, line[best + 1] ** 2
+    den = a_ - 2 * b_ + c_
+    if den > 0:
+        shift += float(np.clip(0.5 * (a_ - c_) / den, -0.5, 0.5)) * step
+    # another slide (or the other way round) that matches about as well: no feature
+    far = ok.copy()
+    far[w] &= np.abs(shifts - shifts[best]) > max(_CURVE_PROBE, 3.0 * sigma)
+    alike = bool(np.any(rms[far] < _CURVE_ALIKE * noise))
+    if alike or not np.isfinite(sigma):
+        return CurveShift(0.0, float("inf"), False, r0, rise)
+    base = at + ways[w] * (sc - sc[mid])
+    s = base + shift
+    k = (s > margin) & (s < ref_cl.length - margin)
+    return CurveShift(shift, float(sigma), True, r0, rise, (p[k], ref_cl.point_at(s[k])))
+
+
+def _rigid_rms(src: np.ndarray, dst: np.ndarray) -> float:
+    """RMS distance between paired points left after the best rigid motion of ``src`` onto
+    ``dst`` (Kabsch: the sums of squares about the centroids less twice the singular values
+    of their cross-covariance, the last one signed against a reflection)."""
+    a = src - src.mean(axis=0)
+    b = dst - dst.mean(axis=0)
+    u, sv, vt = np.linalg.svd(a.T @ b)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sv[-1] = -sv[-1]
+    rss = float(np.einsum("ij,ij->", a, a) + np.einsum("ij,ij->", b, b) - 2.0 * sv.sum())
+    return float(np.sqrt(max(rss, 0.0) / len(src)))
 
 
 def noise_kernel(residuals: np.ndarray) -> float:
@@ -405,3 +551,44 @@ def fine_shift(
     # 120 points/m^2: RMS axial error 2.7 mm where both estimates above said 1.2 mm)
     sigma = float(np.hypot(sigma, _SIGMA_FLOOR))
     return AxialShift(delta, sigma, sigma < 0.1, int((w > 0).sum()), strongest)
+
+
+def translation_fit(
+    ref_xyz: np.ndarray,
+    ref_normals: np.ndarray,
+    cmp_xyz: np.ndarray,
+    *,
+    start: np.ndarray | None = None,
+    kernels: tuple[float, ...] = (0.2, 0.1, 0.05),
+    iterations: int = 12,
+    tree: cKDTree | None = None,
+) -> np.ndarray:
+    """Translation (3,) moving ``cmp_xyz`` onto the reference surface, by Gauss-Newton on
+    Tukey-weighted point-to-plane residuals with a narrowing kernel, never narrower than the
+    noise (as :func:`.axial.fine_shift`, with three degrees of freedom instead of one),
+    started at ``start``; NaN when fewer than 100 points find the surface."""
+    tree = tree if tree is not None else cKDTree(ref_xyz)
+    t = np.zeros(3) if start is None else np.array(start, dtype=np.float64)
+    scale = 0.0  # no later kernel narrower than the noise (see noise_kernel)
+    for stage, kernel in enumerate(kernels):
+        kernel = max(kernel, scale)
+        for _ in range(iterations):
+            p = cmp_xyz + t
+            d, j = tree.query(p, distance_upper_bound=1.5 * kernel, workers=-1)
+            ok = np.isfinite(d)
+            if ok.sum() < 100:
+                return np.full(3, np.nan)
+            n = ref_normals[j[ok]]
+            r = np.einsum("ij,ij->i", n, p[ok] - ref_xyz[j[ok]])
+            w = np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
+            a = (n * w[:, None]).T @ n
+            step = -np.linalg.lstsq(a + 1e-9 * np.eye(3), (n * w[:, None]).T @ r, rcond=None)[0]
+            size = float(np.linalg.norm(step))
+            if size > kernel / 2:
+                step *= kernel / 2 / size
+            t += step
+            if size < 1e-5:
+                break
+        if stage == 0:
+            scale = noise_kernel(r)
+    return t

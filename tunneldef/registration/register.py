@@ -291,8 +291,15 @@ def _best_candidate(
 
 def _axial_floor(info: dict[str, Any]) -> float:
     """A position the first pass could confirm only around one feature (a long overlap) is
-    known to half a coarse bin at best, whatever the later local fits claim."""
-    return float(info.get("axial_uncertainty", 0.0)) if "axial_feature_window" in info else 0.0
+    known to half a coarse bin at best, and one that only the curves' shapes fixed (a bend
+    between straights, smooth rock) to the curves' own figure, whatever the later local fits
+    claim: their point-to-plane slides on walls parallel to the axis see noise."""
+    if "axial_feature_window" in info:
+        return float(info.get("axial_uncertainty", 0.0))
+    bend = info.get("axial_curve")
+    if bend is not None and bend.get("informative"):
+        return float(bend["uncertainty"])
+    return 0.0
 
 
 def _common_stretch(
@@ -328,6 +335,9 @@ def _common_stretch(
             common=common,
             axial_points=_axial_points(ctx.ref_cl, ctx.rc),
             ref_tree=ctx.ref_tree,
+            # where the surfaces left the position open and the curves' shapes fixed it, the
+            # surfaces' slides over a short search are no evidence either
+            curve_only=bool(info.get("axial_curve", {}).get("informative")),
         )
         local = fine.transform @ local
         world_stages["common_stretch"] = f_ref_inv @ local @ coarse

@@ -49,6 +49,7 @@ from .axial import (
     concurrent_slides,
     noise_kernel,
     section_image,
+    translation_fit,
 )
 from .views import axial_correction, normals
 
@@ -741,47 +742,6 @@ def edge_centreline_differences(
         out[e.id] = (float(np.percentile(d, 95)) / np.sqrt(2.0) if d.size >= min_samples
                      else np.nan)
     return out
-
-
-def translation_fit(
-    ref_xyz: np.ndarray,
-    ref_normals: np.ndarray,
-    cmp_xyz: np.ndarray,
-    *,
-    start: np.ndarray | None = None,
-    kernels: tuple[float, ...] = (0.2, 0.1, 0.05),
-    iterations: int = 12,
-    tree: cKDTree | None = None,
-) -> np.ndarray:
-    """Translation (3,) moving ``cmp_xyz`` onto the reference surface, by Gauss-Newton on
-    Tukey-weighted point-to-plane residuals with a narrowing kernel, never narrower than the
-    noise (as :func:`.axial.fine_shift`, with three degrees of freedom instead of one),
-    started at ``start``; NaN when fewer than 100 points find the surface."""
-    tree = tree if tree is not None else cKDTree(ref_xyz)
-    t = np.zeros(3) if start is None else np.array(start, dtype=np.float64)
-    scale = 0.0  # no later kernel narrower than the noise (see noise_kernel)
-    for stage, kernel in enumerate(kernels):
-        kernel = max(kernel, scale)
-        for _ in range(iterations):
-            p = cmp_xyz + t
-            d, j = tree.query(p, distance_upper_bound=1.5 * kernel, workers=-1)
-            ok = np.isfinite(d)
-            if ok.sum() < 100:
-                return np.full(3, np.nan)
-            n = ref_normals[j[ok]]
-            r = np.einsum("ij,ij->i", n, p[ok] - ref_xyz[j[ok]])
-            w = np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
-            a = (n * w[:, None]).T @ n
-            step = -np.linalg.lstsq(a + 1e-9 * np.eye(3), (n * w[:, None]).T @ r, rcond=None)[0]
-            size = float(np.linalg.norm(step))
-            if size > kernel / 2:
-                step *= kernel / 2 / size
-            t += step
-            if size < 1e-5:
-                break
-        if stage == 0:
-            scale = noise_kernel(r)
-    return t
 
 
 def verify_network(

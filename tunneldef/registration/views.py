@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 from ..curve import Centerline
 from ..errors import RegistrationError
 from ..transforms import apply_transform
-from .axial import AxialShift, coarse_shift, fine_shift
+from .axial import AxialShift, coarse_shift, curve_shift, fine_shift, translation_fit
 
 __all__ = [
     "ViewsResult",
@@ -293,6 +293,7 @@ def align_views(
     plan_iterations: int = 2,
     axial_points: int = 60_000,
     ref_tree: cKDTree | None = None,
+    curve_only: bool = False,
 ) -> ViewsResult:
     """Stages 2-4 of the centreline registration (paper §3.2.2-3.2.4).
 
@@ -320,6 +321,11 @@ def align_views(
         long tunnels want more, so that the few surfaces facing along the axis keep enough.
     ref_tree : cKDTree, optional
         A KD-tree of ``ref_xyz`` (built when not given).
+    curve_only : bool
+        Place the compared epoch along the axis by the curves' shapes alone
+        (:func:`.axial.curve_shift`), as a second pass does where the surfaces left the
+        position open in the first: over a short search their slides find a spurious local
+        minimum (a featureless drift with one bend: 25 cm off, claimed +-2 mm).
 
     Returns
     -------
@@ -395,59 +401,96 @@ def align_views(
         m[:2, 3] = t
         return m @ total
 
-    moved = apply_transform(total, cmp_xyz)
-    p = ref_cl.project(moved)
-    coarse, spread = coarse_shift(
-        ref_proj, (p.chainage, p.lateral, p.vertical), ref_cl, search=axial_search
-    )
-    total = slide(total, coarse)
-    out.info["axial_coarse_shift"] = coarse
-    out.info["axial_coarse_spread"] = spread
+    plan = total.copy()  # before any slide along the axis
     ref_n = ref_normals if ref_normals is not None else normals(ref_xyz)
     tree = ref_tree if ref_tree is not None else cKDTree(ref_xyz)
     shift = None
-    for _ in range(plan_iterations):
+    ambiguous = True
+    if not curve_only:
         moved = apply_transform(total, cmp_xyz)
-        pm = ref_cl.project(moved)
-        tan = ref_cl.frame_at(pm.chainage)[0]
-        sel = _axial_sample(pm.chainage, ref_cl.length, common, axial_points)
-        shift = fine_shift(
-            ref_xyz,
-            ref_n,
-            moved[sel],
-            tan[sel],
-            tree=tree,
-            blocks=np.floor(pm.chainage[sel]).astype(np.int64),
+        p = ref_cl.project(moved)
+        coarse, spread = coarse_shift(
+            ref_proj, (p.chainage, p.lateral, p.vertical), ref_cl, search=axial_search
         )
-        total = slide(total, shift.shift)
-        out.info.setdefault("axial_fine_shifts", []).append(shift.shift)
+        total = slide(total, coarse)
+        out.info["axial_coarse_shift"] = coarse
+        out.info["axial_coarse_spread"] = spread
+        for _ in range(plan_iterations):
+            moved = apply_transform(total, cmp_xyz)
+            pm = ref_cl.project(moved)
+            tan = ref_cl.frame_at(pm.chainage)[0]
+            sel = _axial_sample(pm.chainage, ref_cl.length, common, axial_points)
+            shift = fine_shift(
+                ref_xyz,
+                ref_n,
+                moved[sel],
+                tan[sel],
+                tree=tree,
+                blocks=np.floor(pm.chainage[sel]).astype(np.int64),
+            )
+            total = slide(total, shift.shift)
+            out.info.setdefault("axial_fine_shifts", []).append(shift.shift)
+        # a featureless overlap matches equally well at many shifts: then the coarse spread,
+        # not the local least-squares value, says how well the position along the axis is known
+        ambiguous = spread > 1.0
+        if ambiguous and shift is not None and shift.informative \
+                and shift.strongest_block is not None:
+            # on a long overlap one feature (a chamber in 350 m) is lost in the whole tunnel's
+            # clutter; judge the match again on the stretch around the feature the fine stage
+            # used
+            moved = apply_transform(total, cmp_xyz)
+            local_shift, local_spread = _feature_window_shift(
+                ref_proj, moved, ref_cl, float(shift.strongest_block) + 0.5, axial_search
+            )
+            out.info["axial_feature_window"] = {
+                "chainage": float(shift.strongest_block) + 0.5,
+                "shift": local_shift,
+                "spread": local_spread,
+            }
+            ambiguous = not (local_spread <= 1.0 and abs(local_shift) <= _FEATURE_AGREE)
+            if not ambiguous:
+                # the window confirms the position to a bin; the few points on one feature
+                # make the fine stage's own figure optimistic (350 m, 2,600 points/m^2: 18 mm
+                # off where it claimed +-2 mm), so claim no better than half a bin
+                floor = max(float(shift.uncertainty), _FEATURE_FLOOR)
+                shift = dataclasses.replace(shift, uncertainty=floor)
+    # (beyond its basin the mismatch of a partial overlap is no measure: report it unknown)
+    out.axial_uncertainty = (float("inf") if ambiguous or shift is None
+                             else float(shift.uncertainty))
+    out.axial_informative = bool(shift is not None and shift.informative and not ambiguous)
+    if not out.axial_informative:
+        # the surfaces left the position open; the curves' shapes may fix it (a drift that
+        # bends between two straights: the section images follow the reference curve round
+        # the bend and cannot see it, a rigid slide of the compared curve can)
+        cl = cmp_cl.transformed(plan)
+        bend = curve_shift(ref_cl, cl, search=axial_search)
+        out.info["axial_curve"] = {"shift": bend.shift, "uncertainty": bend.uncertainty,
+                                   "informative": bend.informative, "rms": bend.rms,
+                                   "rise": bend.rise}
+        if bend.informative:
+            # the plan part of the rigid motion that pairs the curves at that slide (the
+            # heights and tilts stay the floors' and the centrelines' lines')
+            assert bend.pairs is not None
+            th, tr = _kabsch_2d(bend.pairs[0][:, :2], bend.pairs[1][:, :2])
+            m = np.eye(4)
+            m[:3, :3] = _rot_z(th)
+            m[:2, 3] = tr
+            total = m @ plan
+            # a slide of the curves along a bend is no rigid motion (their best rigid fit at
+            # a slide resists it): the last few centimetres by a rigid translation on the
+            # surfaces themselves, whose walls round the bend face along the straights
+            moved = apply_transform(total, cmp_xyz)
+            pm = ref_cl.project(moved)
+            sel = _axial_sample(pm.chainage, ref_cl.length, common, axial_points)
+            t = translation_fit(ref_xyz, ref_n, moved[sel], tree=tree)
+            if np.all(np.isfinite(t)) and np.linalg.norm(t) <= 3.0 * bend.uncertainty:
+                total = _translation(t) @ total
+                out.info["axial_curve"]["translation"] = [float(v) for v in t]
+            out.axial_uncertainty = bend.uncertainty
+            out.axial_informative = True
+            out.info.pop("axial_feature_window", None)
     out.stages["plan"] = total.copy()
     out.timings["plan"] = time.perf_counter() - t0
-    # a featureless overlap matches equally well at many shifts: then the coarse spread, not
-    # the local least-squares value, says how well the position along the axis is known
-    ambiguous = spread > 1.0
-    if ambiguous and shift is not None and shift.informative and shift.strongest_block is not None:
-        # on a long overlap one feature (a chamber in 350 m) is lost in the whole tunnel's
-        # clutter; judge the match again on the stretch around the feature the fine stage used
-        moved = apply_transform(total, cmp_xyz)
-        local_shift, local_spread = _feature_window_shift(
-            ref_proj, moved, ref_cl, float(shift.strongest_block) + 0.5, axial_search
-        )
-        out.info["axial_feature_window"] = {
-            "chainage": float(shift.strongest_block) + 0.5,
-            "shift": local_shift,
-            "spread": local_spread,
-        }
-        ambiguous = not (local_spread <= 1.0 and abs(local_shift) <= _FEATURE_AGREE)
-        if not ambiguous:
-            # the window confirms the position to a bin; the few points on one feature make
-            # the fine stage's own figure optimistic (350 m, 2,600 points/m^2: 18 mm off
-            # where it claimed +-2 mm), so claim no better than half a bin
-            floor = max(float(shift.uncertainty), _FEATURE_FLOOR)
-            shift = dataclasses.replace(shift, uncertainty=floor)
-    # (beyond its basin the mismatch of a partial overlap is no measure: report it unknown)
-    out.axial_uncertainty = float("inf") if ambiguous else float(shift.uncertainty)
-    out.axial_informative = bool(shift.informative and not ambiguous)
     out.transform = total
     return out
 
