@@ -251,7 +251,8 @@ def curve_shift(
     bend. For each slide (every 0.25 m within ``search`` of where the current pose lays the
     compared curve's middle on the reference) and either way round, the compared curve's
     samples are paired with the reference curve's points at their own chainage plus the slide,
-    and the RMS distance left after the best rigid motion (Kabsch) is the misfit. A bend of constant
+    and the RMS distance left after the best turn about the vertical and translation is the
+    misfit. A bend of constant
     radius slides along itself (the misfit stays flat) and is no feature; nor is one that
     another slide matches within three times the curves' noise.
 
@@ -279,9 +280,9 @@ def curve_shift(
     if sc.size < 8 or ref_cl.length < 2 * margin + min_common:
         return none
     p = cmp_cl.point_at(sc)
-    # either way round (the Kabsch fit takes any rotation: a candidate whose compared epoch
-    # points the wrong way still pairs the curves right), each slide counted from where the
-    # current pose lays the compared curve's middle on the reference
+    # either way round (the fit turns the curve about the vertical: a candidate whose compared
+    # epoch points the wrong way still pairs the curves right), each slide counted from where
+    # the current pose lays the compared curve's middle on the reference
     mid = len(sc) // 2
     at = float(ref_cl.project(p[mid : mid + 1]).chainage[0])
     need = max(min_common, min_overlap * (sc[-1] - sc[0])) / step
@@ -333,15 +334,20 @@ def curve_shift(
 
 
 def _rigid_rms(src: np.ndarray, dst: np.ndarray) -> float:
-    """RMS distance between paired points left after the best rigid motion of ``src`` onto
-    ``dst`` (Kabsch: the sums of squares about the centroids less twice the singular values
-    of their cross-covariance, the last one signed against a reflection)."""
-    a = src - src.mean(axis=0)
-    b = dst - dst.mean(axis=0)
-    u, sv, vt = np.linalg.svd(a.T @ b)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        sv[-1] = -sv[-1]
-    rss = float(np.einsum("ij,ij->", a, a) + np.einsum("ij,ij->", b, b) - 2.0 * sv.sum())
+    """RMS distance between paired points left after the best motion of ``src`` onto ``dst``
+    that keeps the vertical: a turn about z and a translation (the floors have levelled the
+    epochs; a free rotation would also turn a curve upside down, which lays a left-hand bend
+    on a right-hand one and a rise on a fall). In plan, the sums of squares about the
+    centroids less twice the length of their summed dot and cross products; in height, the
+    spread of the differences."""
+    a = src[:, :2] - src[:, :2].mean(axis=0)
+    b = dst[:, :2] - dst[:, :2].mean(axis=0)
+    dot = float(np.einsum("ij,ij->", a, b))
+    cross = float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+    rss = float(np.einsum("ij,ij->", a, a) + np.einsum("ij,ij->", b, b)) - 2.0 * np.hypot(dot,
+                                                                                         cross)
+    dz = dst[:, 2] - src[:, 2]
+    rss += float(np.sum((dz - dz.mean()) ** 2))
     return float(np.sqrt(max(rss, 0.0) / len(src)))
 
 
