@@ -696,3 +696,42 @@ def test_a_crossing_edge_with_a_few_centres_either_side_of_its_junction_keeps_a_
     assert np.median(dist) < 0.01 and dist.max() < 0.3
     chord = curve.points[-1] - curve.points[0]
     assert abs(chord @ way) / np.linalg.norm(chord) > 0.9999
+
+
+def test_a_drift_going_on_as_a_narrower_ramp_is_cut_at_its_change_of_section() -> None:
+    """A 5.6 m rectangle goes on as a 4.0 m trapezoid ramp, its centre 10 cm lower, with no
+    junction there. One curve through the step in its centres rang 4-6 cm about it for 10 m;
+    the change of section now cuts the walk into two drifts at a node, and each curve follows
+    its own drift."""
+    from tunneldef.synth.network import NetworkPairSpec, Stretch
+
+    main = SectionSpec("rectangle", 5.6, 2.8)
+    ramp = SectionSpec("trapezoid", 4.0, 2.6)
+    z = -1.4 + 1.3
+    edges = (
+        EdgeSpec("main", ((0.0, 0.0, 0.0), (45.0, 0.0, 0.0)), main),
+        EdgeSpec("ramp", ((45.0, 0.0, z), (51.0, 0.0, z), (80.0, 0.0, z + 3.5)), ramp,
+                 bend_radius=20.0),
+    )
+    net = NetworkSpec(edges, (JunctionSpec("portal", (45.0, 0.0, 0.0), (0, 1)),))
+    cover = (Stretch(0, 0.0, None), Stretch(1, 0.0, None))
+    spec = NetworkPairSpec(net, ref_coverage=cover, cmp_coverage=cover, density=150.0,
+                           noise_sigma=0.01, drift=0.0, stray_distance=0.0, seed=5)
+    pair = make_network_pair(spec)
+    res = extract_network(pair.ref.xyz)
+    net = res.network
+    assert len(net.edges) == 2 and len(net.junctions) == 1
+    node = net.junctions[0]
+    assert abs(node.position[0] - 45.0) < 1.5 and abs(node.position[1]) < 0.3
+    for e in net.edges:
+        s = np.arange(2.0, e.length - 2.0, 0.25)
+        for a, b in e.zones:
+            s = s[(s < a - 2.0) | (s > b + 2.0)]
+        d = np.min([ax.project(e.centerline.point_at(s)).distance
+                    for ax in pair.truth.centerlines], axis=0)
+        assert np.percentile(d, 95) < 0.02, (e.id, np.percentile(d, 95))
+    # a straight drift of one section is not cut, a short chamber in it neither
+    from tunneldef.synth import PairSpec, TunnelSpec, make_pair
+
+    one = make_pair(PairSpec(TunnelSpec(length=60.0, chamber=True, density=150.0), seed=3))
+    assert len(extract_network(one.ref.xyz).network.edges) == 1

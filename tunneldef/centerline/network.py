@@ -146,6 +146,68 @@ def _corners(axis: Centerline, half_width: float, margin: float) -> list[tuple[n
     return out
 
 
+#: A drift's plan width changing by at least this much (m), and this share of the wider
+#: width, between the 10 m either side of a station is a change of section
+_STEP_WIDTH = 0.5
+_STEP_SHARE = 0.15
+_STEP_WINDOW = 10.0  # m either side of a station whose plan half-widths are compared
+_STEP_GAP = 1.0  # m either side of the station left out of both
+
+
+def _width_steps(axis: Centerline, grid: PlanGrid, blocked: list[tuple[float, float]],
+                 margin: float) -> list[tuple[np.ndarray, float]]:
+    """Changes of section along an edge with no junction there: a drift that goes on as a
+    narrower ramp or a wider drift. The median plan half-width of the footprint over the
+    10 m before a station against the 10 m after it (1 m either side left out, and neither
+    stretch reaching into a ``blocked`` zone): where they differ by at least 0.5 m and 15 %
+    of the wider, the station of the largest difference in each such stretch is a step. One
+    curve through a step in its centres (a 5.6 m drift going on as a 4.0 m ramp, its centre
+    10 cm lower) rang 4-6 cm about it for 10 m; cut there, each side has a curve of its own
+    (:func:`_split_at_corners`), and the node's zone flags the sections of the change.
+    Returns per step its point on ``axis`` and the half-length of its zone (the wider
+    half-width and ``margin``). A chamber shorter than half the window leaves both medians
+    the drift's."""
+    step = 0.25
+    s = np.arange(0.0, axis.length, step)
+    if axis.length < 2 * (_STEP_WINDOW + SPLIT_LEG):
+        return []
+    cells = (axis.point_at(s)[:, :2] - grid.origin) / grid.cell - 0.5
+    cells = np.clip(np.round(cells).astype(np.int64), 0, np.array(grid.footprint.shape) - 1)
+    hw = grid.half_width[cells[:, 0], cells[:, 1]]
+    w = int(round(_STEP_WINDOW / step))
+    g = int(round(_STEP_GAP / step))
+    found: list[tuple[float, float, float]] = []  # (station, jump, wider half-width)
+    run: list[tuple[float, float, float]] = []
+    for i in range(w, len(s) - w):
+        lo, hi = s[i] - _STEP_WINDOW, s[i] + _STEP_WINDOW
+        if any(a <= hi and b >= lo for a, b in blocked):
+            jump = 0.0
+        else:
+            before = float(np.median(hw[i - w : i - g]))
+            after = float(np.median(hw[i + g + 1 : i + w + 1]))
+            jump = 2.0 * abs(after - before)
+            wide = max(before, after)
+            if jump < max(_STEP_WIDTH, _STEP_SHARE * 2.0 * wide):
+                jump = 0.0
+        if jump > 0.0:
+            run.append((float(s[i]), jump, wide))
+        elif run:
+            found.append(_middle(run))
+            run = []
+    if run:
+        found.append(_middle(run))
+    return [(axis.point_at(np.array([at]))[0], wide + margin) for at, wide in found]
+
+
+def _middle(run: list[tuple[float, float, float]]) -> tuple[float, float]:
+    """The middle of the stations whose jump is within 10 % of the largest (with 1 m left out
+    either side, every station within a metre of a sharp step reads all of it) and the wider
+    half-width there."""
+    top = max(j for _, j, _ in run)
+    near = [(at, wide) for at, j, wide in run if j >= 0.9 * top]
+    return float(np.median([at for at, _ in near])), max(wide for _, wide in near)
+
+
 def _corner_points(e: _Edge) -> list[np.ndarray]:
     return [xyz for xyz, _ in e.corners]
 
@@ -218,8 +280,8 @@ def _split_at_corners(
         for (_, xyz), v in zip(chosen, ids[1:-1], strict=True):
             node_xyz[v] = np.asarray(xyz, dtype=np.float64)
             corner_nodes.add(v)
-            logger.info("a skeleton edge turns a corner at %s: cut into two drifts there",
-                        np.round(xyz, 1).tolist())
+            logger.info("a skeleton edge turns a corner or changes section at %s: cut into "
+                        "two drifts there", np.round(xyz, 1).tolist())
         next_v += len(chosen)
         for i in range(len(bounds) - 1):
             a, b = bounds[i], bounds[i + 1]
@@ -578,7 +640,8 @@ def _place_nodes(
 ) -> None:
     """Junction nodes on fitted curves: where the end tangent of an edge that ends there meets
     the edge passing through (else the node's foot point on the first member); a corner's
-    node (``corners``) where its two legs' end tangents meet. Edges in ``skip`` (left out, no
+    node (``corners``) where its two legs' end tangents meet, or midway between their ends
+    where they are in line (a change of section). Edges in ``skip`` (left out, no
     fitted curve) neither host nor place a node."""
     skip = skip or {}
     for v, ks in members.items():
@@ -588,6 +651,9 @@ def _place_nodes(
             at = _tangents_meet(curves[a], edges[a].nodes.index(v),
                                 curves[b], edges[b].nodes.index(v))
             reach = 2.0 * max(edges[a].half_width, edges[b].half_width)
+            if at is None:
+                at = _in_line(curves[a], edges[a].nodes.index(v), curves[b],
+                              edges[b].nodes.index(v))
             if at is not None and np.linalg.norm(at[:2] - node_xyz[v][:2]) <= reach:
                 node_xyz[v] = at
                 continue
@@ -688,6 +754,22 @@ def _tangents_meet(
         return None
     x, y = p[:2] + lam * u[:2]
     return np.array([x, y, 0.5 * ((p + lam * u)[2] + (q + mu * w)[2])])
+
+
+def _in_line(a: Centerline, side_a: int, b: Centerline, side_b: int) -> np.ndarray | None:
+    """Midway between the ends of ``a`` and ``b`` (``side`` 0 start, 1 end) when they leave
+    it in line, within 35 degrees of opposite directions in plan (a drift changing section:
+    the node's zone then reaches the same distance into either); None otherwise."""
+    ends = []
+    for cv, side in ((a, side_a), (b, side_b)):
+        back = min(3.0, 0.5 * cv.length)
+        p, inner = cv.point_at([0.0, back] if side == 0 else [cv.length, cv.length - back])
+        t = (p - inner)[:2]
+        ends.append((p, t / max(float(np.linalg.norm(t)), 1e-12)))
+    (p, u), (q, w) = ends
+    if float(u @ w) > -_CONTINUES_COS:
+        return None
+    return 0.5 * (p + q)
 
 
 def _meet(curve: Centerline, side: int, host: Centerline, near: np.ndarray) -> np.ndarray:
@@ -803,14 +885,25 @@ def extract_network(
         e.corners = [(xyz, h) for xyz, h in e.corners if not any(
             a - reach <= float(e.axis.project(xyz[None]).chainage[0]) <= b + reach
             for a, b in zones[k])]
+    # so does a change of section with no junction there (a drift going on as a ramp)
+    for k, e in enumerate(edges):
+        reach = e.half_width + 2.0
+        blocked = [(a - reach, b + reach) for a, b in zones[k]]
+        blocked += [(c - h, c + h) for c, h in
+                    ((float(e.axis.project(xyz[None]).chainage[0]), h) for xyz, h in e.corners)]
+        for xyz, h in _width_steps(e.axis, grid, blocked, nc.zone_margin):
+            logger.info("the drift's section changes at %s: cut into two drifts there",
+                        np.round(xyz, 1).tolist())
+            e.corners.append((xyz, h))
     # a corner with long legs either side cuts its edge in two at a node
     edges, members, corner_nodes = _split_at_corners(edges, members, node_xyz, zones, pts, grid)
     if corner_nodes:
         zones = _zones(edges, node_xyz, [e.axis for e in edges], members, nc.zone_margin)
     for e in edges:
         for xyz, h in e.corners:
-            logger.info("a skeleton edge turns a corner at %s: sections within %.1f m of it "
-                        "are flagged as a junction zone", np.round(xyz, 1).tolist(), h)
+            logger.info("a skeleton edge turns a corner or changes section at %s: sections "
+                        "within %.1f m of it are flagged as a junction zone",
+                        np.round(xyz, 1).tolist(), h)
     at = [[v for v, ks in members.items() if k in ks] for k in range(len(edges))]
     names = [f"edge {k} ({e.axis.length:.1f} m from {np.round(e.axis.points[0], 1).tolist()})"
              for k, e in enumerate(edges)]
