@@ -49,6 +49,13 @@ def test_a_bend_between_straights_fixes_the_slide() -> None:
     # honest: the figure claimed covers the error made, and fixes the position well enough
     assert 0.01 < out.uncertainty < 0.2
     assert out.rms < 0.01
+    # the later survey goes on three times as far as the earlier one covers: its common part
+    # still pairs (the overlap asked for is a share of the shorter curve)
+    short = _noisy(_cut(ref, 45.0, 75.0), rng)
+    slid = short.transformed(np.array([[1, 0, 0, 2.0], [0, 1, 0, 0], [0, 0, 1, 0],
+                                       [0, 0, 0, 1.0]]))
+    out = curve_shift(slid, ref, search=10.0)
+    assert out.informative and out.uncertainty < 0.2
 
 
 def test_a_constant_radius_bend_or_a_straight_fixes_nothing() -> None:

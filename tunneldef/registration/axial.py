@@ -264,7 +264,7 @@ def curve_shift(
         Largest slide searched, metres.
     min_common, min_overlap : float
         A slide counts only when the curves share at least ``min_common`` metres and
-        ``min_overlap`` of the compared curve's usable length.
+        ``min_overlap`` of the shorter curve's usable length.
 
     Returns
     -------
@@ -285,7 +285,9 @@ def curve_shift(
     # the current pose lays the compared curve's middle on the reference
     mid = len(sc) // 2
     at = float(ref_cl.project(p[mid : mid + 1]).chainage[0])
-    need = max(min_common, min_overlap * (sc[-1] - sc[0])) / step
+    # (of the shorter curve: a later survey that goes on for 130 m more still pairs its
+    # common part)
+    need = max(min_common, min_overlap * min(sc[-1] - sc[0], ref_cl.length - 2 * margin)) / step
     kmax = int(np.ceil(search / step))
     shifts = np.arange(-kmax, kmax + 1) * step
     ways = (1.0, -1.0)
