@@ -235,6 +235,8 @@ _CURVE_MARGIN = 1.0  # m kept clear of either curve's ends (a fit's ends curl)
 _CURVE_NOISE_FLOOR = 0.005  # m: the least misfit taken as the curves' noise
 _CURVE_PROBE = 1.0  # m: the slide at which the misfit's growth is read
 _CURVE_MAX_RMS = 0.05  # m: a best misfit beyond this brings no two curves of one drift together
+_CURVE_MAX_SIGMA = 1.0  # m: a misfit that grows slower than this tells no position (a straight
+# drift's curves wobbling by their noise read +-9 to +-115 m)
 _CURVE_ALIKE = 3.0  # a slide farther than the basin matching within this many noises: ambiguous
 
 
@@ -254,7 +256,8 @@ def curve_shift(
     and the RMS distance left after the best turn about the vertical and translation is the
     misfit. A bend of constant
     radius slides along itself (the misfit stays flat) and is no feature; nor is one that
-    another slide matches within three times the curves' noise.
+    another slide matches within three times the curves' noise, nor one that fixes the
+    position to no better than a metre.
 
     Parameters
     ----------
@@ -327,7 +330,7 @@ def curve_shift(
     far = ok.copy()
     far[w] &= np.abs(shifts - shifts[best]) > max(_CURVE_PROBE, 3.0 * sigma)
     alike = bool(np.any(rms[far] < _CURVE_ALIKE * noise))
-    if alike or not np.isfinite(sigma):
+    if alike or not sigma <= _CURVE_MAX_SIGMA:
         return CurveShift(0.0, float("inf"), False, r0, rise)
     base = at + ways[w] * (sc - sc[mid])
     s = base + shift
