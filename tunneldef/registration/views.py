@@ -476,9 +476,8 @@ def align_views(
             m[:3, :3] = _rot_z(th)
             m[:2, 3] = tr
             total = m @ plan
-            # a slide of the curves along a bend is no rigid motion (their best rigid fit at
-            # a slide resists it): the last few centimetres by a rigid translation on the
-            # surfaces themselves, whose walls round the bend face along the straights
+            # then a rigid translation on the surfaces themselves, which the walls round the
+            # bend hold along the straights (the curves carry the noise of their slices)
             moved = apply_transform(total, cmp_xyz)
             pm = ref_cl.project(moved)
             sel = _axial_sample(pm.chainage, ref_cl.length, common, axial_points)
