@@ -288,8 +288,8 @@ def curve_shift(
     # the current pose lays the compared curve's middle on the reference
     mid = len(sc) // 2
     at = float(ref_cl.project(p[mid : mid + 1]).chainage[0])
-    # (of the shorter curve: a later survey that goes on for 130 m more still pairs its
-    # common part)
+    # the common part asked for is a share of the shorter curve: a later survey that goes on
+    # for 130 m more still pairs
     need = max(min_common, min_overlap * min(sc[-1] - sc[0], ref_cl.length - 2 * margin)) / step
     kmax = int(np.ceil(search / step))
     shifts = np.arange(-kmax, kmax + 1) * step
