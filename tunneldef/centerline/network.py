@@ -160,7 +160,8 @@ def _width_steps(axis: Centerline, grid: PlanGrid, blocked: list[tuple[float, fl
     narrower ramp or a wider drift. The median plan half-width of the footprint over the
     10 m before a station against the 10 m after it (1 m either side left out, and neither
     stretch reaching into a ``blocked`` zone): where they differ by at least 0.5 m and 15 %
-    of the wider, the station of the largest difference in each such stretch is a step. One
+    of the wider, the middle of the stations reading within 10 % of the largest difference
+    in each such stretch is a step. One
     curve through a step in its centres (a 5.6 m drift going on as a 4.0 m ramp, its centre
     10 cm lower) rang 4-6 cm about it for 10 m; cut there, each side has a curve of its own
     (:func:`_split_at_corners`), and the node's zone flags the sections of the change.
@@ -885,17 +886,18 @@ def extract_network(
         e.corners = [(xyz, h) for xyz, h in e.corners if not any(
             a - reach <= float(e.axis.project(xyz[None]).chainage[0]) <= b + reach
             for a, b in zones[k])]
-    # so does a change of section with no junction there (a drift going on as a ramp)
+    # a change of section with no junction there (a drift going on as a ramp) is treated as
+    # a corner
     for k, e in enumerate(edges):
         reach = e.half_width + 2.0
         blocked = [(a - reach, b + reach) for a, b in zones[k]]
         blocked += [(c - h, c + h) for c, h in
                     ((float(e.axis.project(xyz[None]).chainage[0]), h) for xyz, h in e.corners)]
         for xyz, h in _width_steps(e.axis, grid, blocked, nc.zone_margin):
-            logger.info("the drift's section changes at %s: cut into two drifts there",
-                        np.round(xyz, 1).tolist())
+            logger.info("the drift's section changes at %s", np.round(xyz, 1).tolist())
             e.corners.append((xyz, h))
-    # a corner with long legs either side cuts its edge in two at a node
+    # a corner (or change of section) with long legs either side cuts its edge in two at a
+    # node; a shorter one stays a zone of one curve
     edges, members, corner_nodes = _split_at_corners(edges, members, node_xyz, zones, pts, grid)
     if corner_nodes:
         zones = _zones(edges, node_xyz, [e.axis for e in edges], members, nc.zone_margin)
