@@ -739,13 +739,7 @@ def _tangents_meet(
     the mean of their heights there (the tangents are the chords of the last 3 m); None when
     they are within ``asin(min_sin)`` (17 degrees) of parallel, or cross more than a metre
     behind either end."""
-    ends = []
-    for cv, side in ((a, side_a), (b, side_b)):
-        back = min(3.0, 0.5 * cv.length)  # the chord of the last metres, not the end's tangent
-        p, inner = cv.point_at([0.0, back] if side == 0 else [cv.length, cv.length - back])
-        t = p - inner  # pointing out of the curve
-        ends.append((p, t / max(float(np.linalg.norm(t)), 1e-12)))
-    (p, u), (q, w) = ends
+    (p, u), (q, w) = _end_chord(a, side_a), _end_chord(b, side_b)
     m = np.array([[u[0], -w[0]], [u[1], -w[1]]])
     det = float(np.linalg.det(m))
     if abs(det) < min_sin * max(np.linalg.norm(u[:2]) * np.linalg.norm(w[:2]), 1e-12):
@@ -761,16 +755,20 @@ def _in_line(a: Centerline, side_a: int, b: Centerline, side_b: int) -> np.ndarr
     """Midway between the ends of ``a`` and ``b`` (``side`` 0 start, 1 end) when they leave
     it in line, within 35 degrees of opposite directions in plan (a drift changing section:
     the node's zone then reaches the same distance into either); None otherwise."""
-    ends = []
-    for cv, side in ((a, side_a), (b, side_b)):
-        back = min(3.0, 0.5 * cv.length)
-        p, inner = cv.point_at([0.0, back] if side == 0 else [cv.length, cv.length - back])
-        t = (p - inner)[:2]
-        ends.append((p, t / max(float(np.linalg.norm(t)), 1e-12)))
-    (p, u), (q, w) = ends
+    (p, u), (q, w) = _end_chord(a, side_a), _end_chord(b, side_b)
+    u, w = (v[:2] / max(float(np.linalg.norm(v[:2])), 1e-12) for v in (u, w))
     if float(u @ w) > -_CONTINUES_COS:
         return None
     return 0.5 * (p + q)
+
+
+def _end_chord(cv: Centerline, side: int) -> tuple[np.ndarray, np.ndarray]:
+    """The end point of ``cv`` (``side`` 0 start, 1 end) and the unit direction out of the
+    curve there: the chord of its last 3 m (at most half its length), not the end's tangent."""
+    back = min(3.0, 0.5 * cv.length)
+    p, inner = cv.point_at([0.0, back] if side == 0 else [cv.length, cv.length - back])
+    t = p - inner
+    return p, t / max(float(np.linalg.norm(t)), 1e-12)
 
 
 def _meet(curve: Centerline, side: int, host: Centerline, near: np.ndarray) -> np.ndarray:

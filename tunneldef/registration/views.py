@@ -258,6 +258,15 @@ def _plan_rotation(
     return theta
 
 
+def _plan_motion(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The (4, 4) turn about z and plan translation best mapping ``src`` (N, 2) onto ``dst``."""
+    th, t = _kabsch_2d(src, dst)
+    m = np.eye(4)
+    m[:3, :3] = _rot_z(th)
+    m[:2, 3] = t
+    return m
+
+
 def _kabsch_2d(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray]:
     """Rotation angle and translation (2,) best mapping src (N, 2) onto dst (N, 2)."""
     cs, cd = src.mean(axis=0), dst.mean(axis=0)
@@ -395,11 +404,7 @@ def align_views(
             raise RegistrationError(
                 "the two centrelines share less than a metre; the epochs do not overlap"
             )
-        th, t = _kabsch_2d(cl.points[keep, :2], ref_cl.point_at(s[keep])[:, :2])
-        m = np.eye(4)
-        m[:3, :3] = _rot_z(th)
-        m[:2, 3] = t
-        return m @ total
+        return _plan_motion(cl.points[keep, :2], ref_cl.point_at(s[keep])[:, :2]) @ total
 
     plan = total.copy()  # before any slide along the axis
     ref_n = ref_normals if ref_normals is not None else normals(ref_xyz)
@@ -471,11 +476,7 @@ def align_views(
             # the plan part of the rigid motion that pairs the curves at that slide (the
             # heights and tilts stay the floors' and the centrelines' lines')
             assert bend.pairs is not None
-            th, tr = _kabsch_2d(bend.pairs[0][:, :2], bend.pairs[1][:, :2])
-            m = np.eye(4)
-            m[:3, :3] = _rot_z(th)
-            m[:2, 3] = tr
-            total = m @ plan
+            total = _plan_motion(bend.pairs[0][:, :2], bend.pairs[1][:, :2]) @ plan
             # then a rigid translation on the surfaces themselves, which the walls round the
             # bend hold along the straights (the curves carry the noise of their slices)
             moved = apply_transform(total, cmp_xyz)
