@@ -341,12 +341,14 @@ class ccProgressDialog:  # noqa: N801
         self.started = self.stopped = False
         self.cancel_after: int | None = None  # test switch: press Cancel after n updates
         self.title = self.info = ""
+        self.visible = False
+        self.auto_closed = 0  # times the value reached the maximum and the dialog hid itself
 
     def start(self) -> None:
-        self.started = True
+        self.started = self.visible = True
 
     def stop(self) -> None:
-        self.stopped = True
+        self.stopped, self.visible = True, False
 
     def setMethodTitle(self, methodTitle: str) -> None:  # noqa: N802, N803
         self.title = methodTitle
@@ -355,7 +357,12 @@ class ccProgressDialog:  # noqa: N801
         self.info = infoStr
 
     def update(self, percent: float) -> None:
+        """As the real one: a QProgressDialog on 0-100 with autoClose and autoReset, so the
+        maximum hides it (and clears its cancellation flag)."""
         self.values.append(float(percent))
+        if int(percent) >= 100:
+            self.visible = False
+            self.auto_closed += 1
 
     def isCancelRequested(self) -> bool:  # noqa: N802
         return self.cancel_after is not None and len(self.values) >= self.cancel_after

@@ -287,10 +287,13 @@ def test_progress_bridge_updates_and_cancels(pycc, adapter):
 
     dlg = pycc.ccProgressDialog(cancelButton=True)
     bridge = adapter.ProgressBridge(dlg)
+    dlg.start()
     bridge("centreline", 0.5)
     bridge("centreline", 1.0)
     bridge("registration", 0.25)
-    assert dlg.values == [50.0, 100.0, 25.0] and bridge.stages == ["centreline", "registration"]
+    assert dlg.values == [50.0, 99.0, 25.0] and bridge.stages == ["centreline", "registration"]
+    # a stage that ends does not end the dialog: its Cancel button stays on screen
+    assert dlg.visible and dlg.auto_closed == 0
     dlg.cancel_after = 3
     with pytest.raises(Cancelled, match="registration"):
         bridge("registration", 0.5)

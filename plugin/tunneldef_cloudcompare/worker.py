@@ -21,6 +21,9 @@ import numpy as np
 
 __all__ = ["ProgressBridge", "Outcome", "run_guarded", "run_in_worker"]
 
+#: the highest value the bar is moved to while a job runs (see :meth:`ProgressBridge.pump`)
+MAX_PERCENT = 99.0
+
 
 class ProgressBridge:
     """The core's ``progress(stage, fraction)`` callback, shown in a CloudCompare progress dialog.
@@ -62,7 +65,10 @@ class ProgressBridge:
         now = (self.stages[-1], self.last_fraction)
         if now != self._shown:
             self._shown = now
-            dlg.update(float(np.clip(100.0 * now[1], 0.0, 100.0)))
+            # at most 99 %: CloudCompare's dialog is a QProgressDialog with autoClose and
+            # autoReset on a 0-100 range, so 100 would hide it (and clear a Cancel already
+            # pressed) for the rest of the run, which goes on to its next stage
+            dlg.update(float(np.clip(100.0 * now[1], 0.0, MAX_PERCENT)))
 
     def __call__(self, stage: str, fraction: float) -> None:
         from tunneldef.progress import Cancelled
