@@ -311,6 +311,11 @@ class QualityConfig:
 
     enforce: bool = _p(True, "ours: a failed check stops detect with a one-line reason (exit 2); "
                              "false (or the CLI's --force) writes the result marked 'unverified'")
+    max_tilt_deg: float = _p(5.0, "ours: levelled scans (registration.coarse_vertical = "
+                                  "'world'): the registration may tip the compared epoch's "
+                                  "vertical by at most this, degrees (a flat drift going on up "
+                                  "a 12 % ramp, turned end for end, lies on itself tipped by "
+                                  "6.8 degrees)")
     min_usable_share: float = _p(0.5, "ours: at least half the slices of the kept centreline pass "
                                       "must show a floor, a roof and two walls")
     max_curve_uncertainty: float = _p(0.03, "ours: 95 % uncertainty of a centreline, taken as "

@@ -34,10 +34,12 @@ from .quality import (
     QualityReport,
     centerline_checks,
     deformation_checks,
+    direction_check,
     edge_checks,
     edge_difference_checks,
     network_registration_checks,
     registration_checks,
+    tilt_check,
     topology_checks,
 )
 from .transforms import apply_transform
@@ -233,6 +235,7 @@ def register_epochs(
         )
     check = None
     if reg.method == "centerline":
+        from .registration.register import tilt_deg
         from .registration.verify import verify_registration
 
         notify(progress, "registration check", 0.0)
@@ -240,7 +243,10 @@ def register_epochs(
                                     cmp_centerline=cmp_ex.centerline,
                                     search=config.registration.axial_search or 10.0,
                                     points_per_metre=config.registration.max_points_per_metre)
-        checks = registration_checks(check, config.quality)
+        levelled = config.registration.coarse_vertical == "world"
+        tilt = tilt_deg(reg.transform) if levelled else float("nan")
+        checks = registration_checks(check, config.quality) + [
+            direction_check(reg.info), tilt_check(tilt, config.quality)]
         if reg.info.get("axial_curve", {}).get("informative"):
             checks = _bend_checks(checks, ref, cmp, ref_ex.centerline, reg.transform, config)
         notify(progress, "registration check", 1.0)

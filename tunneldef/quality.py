@@ -286,6 +286,40 @@ def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
     ]
 
 
+def direction_check(info: dict[str, Any]) -> Check:
+    """Whether the registration knows which way round the compared epoch goes: where both
+    ways fit alike (``direction_tilt_gap_deg`` in the registration's ``info``; absent when
+    one way fits clearly better), only how far each tips the compared epoch's vertical tells
+    them apart, and only with levelled scans."""
+    from .registration.register import DIRECTION_TILT_GAP_DEG
+
+    gap = float(info.get("direction_tilt_gap_deg", np.nan))
+    tilts = info.get("direction_tilts_deg", [np.nan, np.nan])
+    return _check(
+        "registration.direction", gap, DIRECTION_TILT_GAP_DEG, ">=", "deg",
+        "the tunnel fits itself turned end for end as well as the right way round (a "
+        "symmetric stretch: a flat drift going on up a ramp, a plain drift); with levelled "
+        "scans only a clear difference in tilt settles it; register a stretch with a chamber, "
+        "a junction or a bend that is not symmetric",
+        "both ways round fit alike; the kept one tips the compared epoch's vertical by "
+        f"{tilts[0]:.2f} degrees, the other by {tilts[1]:.2f}; the figure is their difference "
+        "(none when one way round fits clearly better)",
+    )
+
+
+def tilt_check(tilt_deg: float, qc: QualityConfig) -> Check:
+    """How far the registration tips the compared epoch's vertical (levelled scans only:
+    NaN, which passes, otherwise)."""
+    return _check(
+        "registration.tilt", tilt_deg, qc.max_tilt_deg, "<=", "deg",
+        "the registration tips the compared epoch far from its own vertical, which levelled "
+        "scans do not need: it may have laid a symmetric stretch on itself the wrong way "
+        "round (a flat drift going on up a ramp); if the scans are not levelled, set "
+        "registration.coarse_vertical = \"pca\"",
+        "angle between the compared epoch's vertical, registered, and the reference's",
+    )
+
+
 def _fit_excess(check: Any, qc: QualityConfig, advice: str) -> list[Check]:
     """The misfit the scans' own noise does not explain, and the misfit neighbouring points
     share (drift or network): both enter the LoD95, which then cannot show a poor fit as

@@ -157,6 +157,9 @@ def register(
         if rc.refine:
             local = _refine_on_shell(ctx, coarse, local, info, axial_floor, world_stages,
                                      timings, f_ref_inv)
+        if info.get("axial_curve", {}).get("informative"):
+            local = _curve_placed_fit(ref_xyz, ctx, coarse, local, info, world_stages,
+                                      timings, f_ref_inv)
         if info.get("axial_uncertainty", 0.0) > 1.0:
             logger.warning(
                 "the position along the axis is not determined: the overlap has no feature "
@@ -274,19 +277,61 @@ def _best_candidate(
     if not ok:
         raise RegistrationError(f"the epochs could not be registered: {candidates[0][4]}")
     ok.sort(key=lambda c: (-round(c[0], 3), c[1]))
-    score, fit, q, (coarse, local, stages, info, stage_t, second), _ = ok[0]
+    pick, extra = 0, {}
+    if (len(ok) > 1 and ok[1][0] > ok[0][0] - 0.01
+            and abs(ok[1][1] - ok[0][1]) < 0.1 * ok[0][1]
+            and _apart(ok[0][3], ok[1][3], ctx.cmp_s) > _SAME_POSE):
+        # the tunnel looks the same both ways round (a flat drift going on up a ramp, turned
+        # end for end and tipped by the grade, lies on itself): with levelled scans the way
+        # round that tips the compared epoch least is the survey's; otherwise it is open
+        tilts = [tilt_deg(f_ref_inv @ c[3][1] @ c[3][0]) for c in ok[:2]]
+        gap = abs(tilts[1] - tilts[0]) if rc.coarse_vertical == "world" else 0.0
+        extra = {"direction_tilt_gap_deg": gap}
+        if gap > DIRECTION_TILT_GAP_DEG:
+            pick = int(tilts[1] < tilts[0])
+            logger.info("the tunnel fits both ways round; the way that tips the compared "
+                        "epoch least (%.2f against %.2f degrees) is kept", min(tilts),
+                        max(tilts))
+        else:
+            logger.warning("the tunnel looks the same both ways round; the direction is "
+                           "ambiguous")
+            extra["direction_ambiguous"] = True
+        extra["direction_tilts_deg"] = [tilts[pick], tilts[1 - pick]]
+    score, fit, q, (coarse, local, stages, info, stage_t, second), _ = ok[pick]
     info["direction_candidates"] = [
         {"flip": c[2], "overlap": c[0], "fitness": c[1]} for c in candidates
     ]
-    if len(ok) > 1 and ok[1][0] > score - 0.01 and abs(ok[1][1] - fit) < 0.1 * fit:
-        logger.warning("the tunnel looks the same both ways round; the direction is ambiguous")
-        info["direction_ambiguous"] = True
+    info.update(extra)
     timings.update(stage_t)
     world_stages = {"coarse": f_ref_inv @ coarse}
     for name, m in stages.items():
         world_stages[name] = f_ref_inv @ m @ coarse
     world_stages.update(second)
     return coarse, local, info, world_stages
+
+
+#: with levelled scans (``coarse_vertical = "world"``), two ways round that fit alike are told
+#: apart when one tips the compared epoch's vertical by more than this, degrees, beyond the
+#: other (a 12 % ramp: 6.8 degrees)
+DIRECTION_TILT_GAP_DEG = 1.0
+
+
+#: two direction candidates that end this close (largest move of a compared point, m) are one
+#: pose: the views turned one of them round
+_SAME_POSE = 0.5
+
+
+def _apart(a: tuple, b: tuple, cmp_xyz: np.ndarray) -> float:
+    """Largest distance between where two candidates (``(coarse, local, ...)``) put the same
+    compared points, metres."""
+    pts = cmp_xyz[:: max(1, len(cmp_xyz) // 2000)]
+    moved = [apply_transform(c[1] @ c[0], pts) for c in (a, b)]
+    return float(np.max(np.linalg.norm(moved[0] - moved[1], axis=1)))
+
+
+def tilt_deg(transform: np.ndarray) -> float:
+    """Angle between the vertical and the vertical turned by ``transform``, degrees."""
+    return float(np.degrees(np.arccos(np.clip(transform[2, 2], -1.0, 1.0))))
 
 
 def _axial_floor(info: dict[str, Any]) -> float:
@@ -411,6 +456,56 @@ def _refine_on_shell(
     info.pop("refine_axial_uncertainty", None)
     world_stages["refine"] = f_ref_inv @ local @ coarse
     timings["refine"] = time.perf_counter() - t0
+    return local
+
+
+def _curve_placed_fit(
+    ref_xyz: np.ndarray,
+    ctx: _Context,
+    coarse: np.ndarray,
+    local: np.ndarray,
+    info: dict[str, Any],
+    world_stages: dict[str, np.ndarray],
+    timings: dict[str, float],
+    f_ref_inv: np.ndarray,
+) -> np.ndarray:
+    """The last stage of a registration whose position along the axis the curves' shapes
+    gave (:func:`~.axial.curve_shift`): a rigid point-to-plane fit (:func:`~.axial.rigid_fit`)
+    on a reference as dense as its check's (:func:`~.verify.verify_network`, at least 400 000
+    points), kept when it moves no compared point by more than 3 x the curves' uncertainty.
+
+    The surfaces hold such a position only weakly (a bend's walls, a ramp's floor and roof);
+    on the registration's own sparser subset the slide read by the nearest neighbours is
+    biased towards where it starts, and more so the noisier the planes' points (a flat drift
+    going on up a 12 % ramp: 29 mm off after the plan view's fit on 180 000 points; fitted
+    again on 400 000, 13 mm off, and on the centroids of their neighbours, 0-5 mm)."""
+    from .axial import neighbour_centroids, rigid_fit
+    from .views import _AXIAL_MAX_POINTS, _axial_sample
+
+    ref_cl, rc = ctx.ref_cl, ctx.rc
+    assert ref_cl is not None
+    t0 = time.perf_counter()
+    n = max(400_000, int(2 * rc.max_points_per_metre * ref_cl.length))
+    ref_d = apply_transform(ctx.ref_frame.matrix, random_subset(ref_xyz, n, 11))
+    tree = cKDTree(ref_d)
+    moved = apply_transform(local @ coarse, ctx.cmp_s)
+    sel = _axial_sample(ref_cl.project(moved).chainage, ref_cl.length, None,
+                        _AXIAL_MAX_POINTS)
+    fit = rigid_fit(ref_d, normals(ref_d), moved[sel], tree=tree,
+                    plane_points=neighbour_centroids(ref_d, tree))
+    limit = 3.0 * float(info["axial_curve"]["uncertainty"])
+    rec: dict[str, Any] = {"applied": False, "limit": limit}
+    if np.all(np.isfinite(fit)):
+        sample = moved[sel]
+        reach = float(np.max(np.linalg.norm(apply_transform(fit, sample) - sample, axis=1)))
+        rec.update(translation=[float(v) for v in fit[:3, 3]],
+                   angle_deg=rotation_error_deg(fit, np.eye(4)), largest_move=reach,
+                   applied=reach <= limit)
+        if reach <= limit:
+            local = fit @ local
+    info["curve_placed_fit"] = rec
+    world_stages["curve_placed_fit"] = f_ref_inv @ local @ coarse
+    timings["curve_placed_fit"] = time.perf_counter() - t0
     return local
 
 

@@ -43,7 +43,10 @@ class Registration:
     info : dict
         Diagnostics: ``floor_tilt_deg``, ``axial_*`` shifts, ``direction_candidates`` (overlap
         of each PCA sign candidate), ``direction_ambiguous`` (the tunnel looks the same both
-        ways round), ``refine`` (its correction and whether it was applied).
+        ways round and the tilt does not tell), ``direction_tilt_gap_deg`` and
+        ``direction_tilts_deg`` (where both ways fit alike: how far each tips the compared
+        epoch's vertical, the kept one first), ``refine`` (its correction and whether it was
+        applied).
     """
 
     transform: np.ndarray

@@ -37,7 +37,14 @@ from scipy.spatial import cKDTree
 from ..curve import Centerline
 from ..errors import RegistrationError
 from ..transforms import apply_transform
-from .axial import AxialShift, coarse_shift, curve_shift, fine_shift, translation_fit
+from .axial import (
+    AxialShift,
+    coarse_shift,
+    curve_shift,
+    fine_shift,
+    rigid_fit,
+)
+from .metrics import rotation_error_deg
 
 __all__ = [
     "ViewsResult",
@@ -477,15 +484,24 @@ def align_views(
             # heights and tilts stay the floors' and the centrelines' lines')
             assert bend.pairs is not None
             total = _plan_motion(bend.pairs[0][:, :2], bend.pairs[1][:, :2]) @ plan
-            # then a rigid translation on the surfaces themselves, which the walls round the
-            # bend hold along the straights (the curves carry the noise of their slices)
+            # then a rigid motion on the surfaces themselves, which the walls round a bend
+            # hold along the straights and a ramp's floor and roof along a grade change (the
+            # curves carry the noise of their slices). Rotations too: a translation alone
+            # trades the weak slide for the small tilt the floors and centrelines left (a flat
+            # drift going on up a 12 % ramp ended 45 mm off along it, 5 mm with them)
             moved = apply_transform(total, cmp_xyz)
             pm = ref_cl.project(moved)
             sel = _axial_sample(pm.chainage, ref_cl.length, common, axial_points)
-            t = translation_fit(ref_xyz, ref_n, moved[sel], tree=tree)
-            if np.all(np.isfinite(t)) and np.linalg.norm(t) <= 3.0 * bend.uncertainty:
-                total = _translation(t) @ total
-                out.info["axial_curve"]["translation"] = [float(v) for v in t]
+            fit = rigid_fit(ref_xyz, ref_n, moved[sel], tree=tree)
+            if np.all(np.isfinite(fit)):
+                sample = moved[sel]
+                reach = float(np.max(np.linalg.norm(apply_transform(fit, sample) - sample,
+                                                    axis=1)))
+                out.info["axial_curve"]["surface_fit"] = {
+                    "translation": [float(v) for v in fit[:3, 3]],
+                    "angle_deg": rotation_error_deg(fit, np.eye(4)), "largest_move": reach}
+                if reach <= 3.0 * bend.uncertainty:
+                    total = fit @ total
             out.axial_uncertainty = bend.uncertainty
             out.axial_informative = True
             out.info.pop("axial_feature_window", None)
