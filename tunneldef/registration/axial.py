@@ -587,13 +587,10 @@ def translation_fit(
         kernel = max(kernel, scale)
         for _ in range(iterations):
             p = cmp_xyz + t
-            d, j = tree.query(p, distance_upper_bound=1.5 * kernel, workers=-1)
-            ok = np.isfinite(d)
-            if ok.sum() < 100:
+            found = _plane_residuals(tree, ref_xyz, ref_normals, p, kernel)
+            if found is None:
                 return np.full(3, np.nan)
-            n = ref_normals[j[ok]]
-            r = np.einsum("ij,ij->i", n, p[ok] - ref_xyz[j[ok]])
-            w = np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
+            _, n, r, w = found
             a = (n * w[:, None]).T @ n
             step = -np.linalg.lstsq(a + 1e-9 * np.eye(3), (n * w[:, None]).T @ r, rcond=None)[0]
             size = float(np.linalg.norm(step))
@@ -605,6 +602,21 @@ def translation_fit(
         if stage == 0:
             scale = noise_kernel(r)
     return t
+
+
+def _plane_residuals(
+    tree: cKDTree, anchors: np.ndarray, normals: np.ndarray, p: np.ndarray, kernel: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Point-to-plane residuals of ``p`` against the plane (``anchors``, ``normals``) of its
+    nearest reference point within 1.5 kernels, with their Tukey weights: ``(found, normals,
+    residuals, weights)``, or None when fewer than 100 points find one."""
+    d, j = tree.query(p, distance_upper_bound=1.5 * kernel, workers=-1)
+    ok = np.isfinite(d)
+    if ok.sum() < 100:
+        return None
+    n = normals[j[ok]]
+    r = np.einsum("ij,ij->i", n, p[ok] - anchors[j[ok]])
+    return ok, n, r, np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
 
 
 def rigid_fit(
@@ -648,13 +660,10 @@ def rigid_fit(
         kernel = max(kernel, scale)
         for _ in range(iterations):
             p = local @ rot.T + t
-            d, j = tree.query(p + centre, distance_upper_bound=1.5 * kernel, workers=-1)
-            ok = np.isfinite(d)
-            if ok.sum() < 100:
+            found = _plane_residuals(tree, anchor, ref_normals, p + centre, kernel)
+            if found is None:
                 return np.full((4, 4), np.nan)
-            n = ref_normals[j[ok]]
-            r = np.einsum("ij,ij->i", n, p[ok] + centre - anchor[j[ok]])
-            w = np.where(np.abs(r) < kernel, (1 - (r / kernel) ** 2) ** 2, 0.0)
+            ok, n, r, w = found
             # residual change for a small rotation omega about the centroid and a translation
             jac = np.hstack([np.cross(p[ok], n), n])
             a = (jac * w[:, None]).T @ jac
