@@ -685,7 +685,6 @@ def rigid_fit(
     return out
 
 
-
 def neighbour_centroids(xyz: np.ndarray, tree: cKDTree, k: int = 16) -> np.ndarray:
     """The centroid (N, 3) of each point's ``k`` nearest neighbours (itself included): points
     on the local surface with its noise across it averaged out, for
