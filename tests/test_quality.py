@@ -28,6 +28,7 @@ from tunneldef.quality import (
     QualityError,
     QualityReport,
     centerline_checks,
+    upright_check,
 )
 from tunneldef.registration.verify import verify_registration
 
@@ -153,6 +154,21 @@ def test_extraction_records_every_pass_and_its_checks() -> None:
     assert res.centerline.meta["pass_quality"][0]["number"] == 1
     # the sample count is bounded by the cloud: 19-20 m at 5 cm
     assert len(res.centerline.points) < 20.0 / 0.05 + 5
+
+
+def test_a_cloud_on_its_side_is_flagged_not_refused(chamber_pair) -> None:  # noqa: ANN001
+    """A y-up export of a 5.8 x 2.86 m drift reads about twice as tall as wide: its roof and
+    walls would swap, so the run warns (advisory: it neither stops nor is unverified)."""
+    xyz = chamber_pair.ref.xyz
+    up = upright_check(extract_centerline(xyz), QualityConfig())
+    assert up.passed and 0.4 < up.figure < 0.6
+    y_up = xyz @ np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]).T
+    side = upright_check(extract_centerline(y_up), QualityConfig())
+    assert not side.passed and side.advisory and 1.8 < side.figure < 2.2
+    report = QualityReport()
+    report.add([side])  # advisory: no QualityError
+    assert report.verified and report.warnings == [side]
+    assert "z points up" in side.reason()
 
 
 def test_bad_inputs_are_one_line_errors() -> None:

@@ -316,6 +316,12 @@ class QualityConfig:
                                   "vertical by at most this, degrees (a flat drift going on up "
                                   "a 12 % ramp, turned end for end, lies on itself tipped by "
                                   "6.8 degrees)")
+    max_height_to_width: float = _p(1.5, "ours: advisory: the reference's section (median of "
+                                         "its fitted slices) may be at most this much taller "
+                                         "than wide; taller, its z axis may not point up (a "
+                                         "y-up export), and roof, walls, floor and the "
+                                         "vertical/horizontal split would be read about the "
+                                         "wrong axis")
     min_usable_share: float = _p(0.5, "ours: at least half the slices of the kept centreline pass "
                                       "must show a floor, a roof and two walls")
     max_curve_uncertainty: float = _p(0.03, "ours: 95 % uncertainty of a centreline, taken as "

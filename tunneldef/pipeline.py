@@ -41,6 +41,7 @@ from .quality import (
     registration_checks,
     tilt_check,
     topology_checks,
+    upright_check,
 )
 from .transforms import apply_transform
 
@@ -217,6 +218,7 @@ def register_epochs(
         ref_ex = extract_centerline(ref.xyz, **lines,
                                     progress=under(progress, "reference centreline"))
     report.add(centerline_checks(ref_ex, config.quality, "reference"))
+    report.add([upright_check(ref_ex, config.quality)])
     with epoch_named("compared"):
         cmp_ex = extract_centerline(cmp.xyz, **lines,
                                     progress=under(progress, "compared centreline"))
@@ -695,6 +697,7 @@ def detect_network(
     with epoch_named("reference"):
         ref_net = extract_network(ref.xyz, **lines, progress=under(progress, "reference network"))
     _check_edges(ref_net, report, config, "reference")
+    report.add([upright_check(ref_net, config.quality)])
     with epoch_named("compared"):
         cmp_net = extract_network(cmp.xyz, **lines, progress=under(progress, "compared network"))
     _check_edges(cmp_net, report, config, "compared")

@@ -33,6 +33,7 @@ __all__ = [
     "UNVERIFIED",
     "topology_checks",
     "centerline_checks",
+    "upright_check",
     "registration_checks",
     "deformation_checks",
     "edge_checks",
@@ -237,6 +238,32 @@ def centerline_checks(extraction: Any, qc: QualityConfig, epoch: str) -> list[Ch
         _check(f"{name}.length_vs_extent", q.length - q.extent, 1.0, "<=", "m", advice,
                "curve length minus the cloud's extent along it"),
     ]
+
+
+def upright_check(extraction: Any, qc: QualityConfig) -> Check:
+    """Whether the reference epoch's z axis looks like the vertical (an advisory check).
+
+    Roof, walls and floor, and the vertical and horizontal parts of the deformation, are read
+    about the reference's z axis. A cloud exported with y up (or rolled on its side) looks
+    like a tunnel as much as a levelled one, and the run would call a roof sag a wall bulge.
+    Nothing in the points says where gravity was, but mine drifts are rarely much taller
+    than wide: the figure is the median height / width of the reference's fitted slices (a
+    single-drift extraction's, or every edge's of a network; NaN, passing, without any).
+    """
+    slices = extraction.slices if hasattr(extraction, "slices") else [
+        r for e in extraction.network.edges for r in e.slices]
+    ratios = [r.height / r.width for r in slices
+              if r.ok and np.isfinite(r.height) and np.isfinite(r.width) and r.width > 0]
+    figure = float(np.median(ratios)) if ratios else np.nan
+    check = _check(
+        "reference_section.upright", figure, qc.max_height_to_width, "<=", "",
+        "the reference's section is much taller than wide, which mine drifts rarely are: if "
+        "its z axis does not point up (a y-up export, a cloud on its side), roof, walls and "
+        "floor and the vertical and horizontal deformation are read about the wrong axis; "
+        "rotate both epochs so that z points up",
+        "median height / width of the reference's fitted slices, about its z axis",
+    )
+    return dataclasses.replace(check, advisory=True)
 
 
 def registration_checks(check: Any, qc: QualityConfig) -> list[Check]:
