@@ -85,6 +85,7 @@ class FakeCore:
 
     def __init__(self, pair, error=None):
         self.pair, self.error, self.calls = pair, error, []
+        self.quality = None
 
     def detect(self, ref, cmp, config=None, *, progress=None, tiles=None):
         self.calls.append(SimpleNamespace(ref=ref, cmp=cmp, config=config, tiles=tiles))
@@ -110,6 +111,7 @@ class FakeCore:
             ref_centerline=Centerline.from_polyline(axis, step=0.5),
             cmp_centerline=Centerline.from_polyline(axis + [0, 0.01, 0], step=0.5),
             statistics=lambda: {"count": n, "mean": float(p.deformation.mean())},
+            quality=self.quality,
         )
 
 
@@ -186,6 +188,22 @@ def test_detect_writes_fields_and_adds_entities(pycc, plugin, core, pair):
     assert set(_fields(made.registered)) == set(f)
     assert made.ref_centerline.size() == 25 and not made.ref_centerline.closed
     assert pycc.GetInstance().frozen == [True, False]
+
+
+def test_detect_prints_the_advisory_warnings(pycc, plugin, core, pair, capsys):
+    """A warning the run does not stop for (a cloud that may lie on its side) reaches
+    CloudCompare's console, not only the Python log."""
+    from tunneldef.config import QualityConfig
+    from tunneldef.quality import QualityReport, upright_check
+
+    tall = SimpleNamespace(slices=[SimpleNamespace(ok=True, width=2.9, height=5.8)] * 9)
+    core.quality = QualityReport(enforced=True)
+    core.quality.add([upright_check(tall, QualityConfig())])
+    _select(pycc, pair)
+    assert plugin.detect_deformation(ask=False) is not None
+    out = capsys.readouterr().out
+    assert "[tunneldef] warning: reference_section.upright 2 > limit 1.5" in out
+    assert "z points up" in out
 
 
 def test_detect_rerun_replaces_fields(pycc, plugin, core, pair):

@@ -199,6 +199,9 @@ def detect_on(ref_e: Any, cmp_e: Any, params: DetectParams | None = None) -> Any
             )
         )
     _console(f"[tunneldef] {made.legend()}")
+    # what the run warns of without stopping (e.g. a reference whose z may not point up)
+    for check in getattr(getattr(result, "quality", None), "warnings", ()):
+        _console(f"[tunneldef] warning: {check.reason()}")
     return made
 
 
