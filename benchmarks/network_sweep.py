@@ -387,7 +387,8 @@ def score(case: NetCase, pair: NetworkPair, result: Any) -> None:
 def _centre_errors(pair: NetworkPair, result: Any, margin: float = 2.0) -> dict[int, float]:
     """Per reference edge, the p95 distance of its curve from the truth axis of the drift it
     follows (the reference epoch's own SLAM drift there taken out), more than ``margin``
-    from its ends and junction zones; the single-drift result gives one edge."""
+    from its ends, its junction zones and every true junction's mouth (a cross-cut that
+    neither epoch walked into included); the single-drift result gives one edge."""
     from scipy.spatial import cKDTree
 
     t = pair.truth
@@ -407,8 +408,32 @@ def _centre_errors(pair: NetworkPair, result: Any, margin: float = 2.0) -> dict[
         q = cl.point_at(s)
         q = q - offset[tree.query(q)[1]]
         d = np.min([ax.project(q).distance for ax in t.centerlines], axis=0)
+        d = d[_away_from_junctions(q, pair, margin)]
+        if d.size < 5:
+            continue
         out[k] = float(np.percentile(d, 95))
     return out
+
+
+def _away_from_junctions(q: np.ndarray, pair: NetworkPair, margin: float) -> np.ndarray:
+    """Which curve samples lie away from every true junction: farther from its node than
+    the mouth reaches along the drift (half the widest drift there over the sine of the
+    angle they meet at) plus ``margin``. The pipeline's own zones cover the junctions it
+    found; a cross-cut nobody walked into is a junction all the same (the issue's "away
+    from junctions (+-2 m)"), whose mouth is a hole in the drift's wall."""
+    t = pair.truth
+    keep = np.ones(len(q), dtype=bool)
+    for j in t.junctions:
+        node = np.asarray(j.position, dtype=np.float64)
+        tangents = [t.centerlines[e].frame_at(
+            np.atleast_1d(t.centerlines[e].project(node[None]).chainage))[0][0]
+            for e in j.edges]
+        sines = [np.linalg.norm(np.cross(a, b)) for i, a in enumerate(tangents)
+                 for b in tangents[i + 1:]]
+        width = max(pair.spec.network.edges[e].section.width for e in j.edges)
+        reach = 0.5 * width / max(min(sines, default=1.0), 0.5) + margin
+        keep &= np.linalg.norm(q - node, axis=1) > reach
+    return keep
 
 
 def run_case(case: NetCase, config: Config | None = None) -> NetCase:
