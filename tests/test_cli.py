@@ -192,7 +192,24 @@ def test_detect_refuses_an_undetermined_axial_position(
     code, _, err = run(capsys, "detect", str(paths["ref"]), str(paths["cmp"]), "-o",
                        str(tmp_path / "o.ply"))
     assert code == 2 and "along the tunnel is undetermined" in err
+    assert "the common stretch" in err and "no feature" in err
     assert not (tmp_path / "o.ply").exists()
+
+
+def test_an_undetermined_position_says_whether_a_feature_was_seen() -> None:
+    """Where the slide's strongest feature is not confirmed by the section images (a small
+    chamber beside a conveyor whose coal changed reads like a prism's noise), the reason
+    says where it looked rather than that the drift has no chamber."""
+    from tunneldef.pipeline import _why_undetermined
+
+    assert "no features along the axis" in _why_undetermined({})
+    seen = _why_undetermined({"axial_feature_window": {"chainage": 56.5, "shift": 0.0,
+                                                       "spread": 1.5}})
+    assert "that the section images confirm" in seen
+    assert "near chainage 56.5 m" in seen and "1.50 m either way" in seen
+    thin = _why_undetermined({"axial_feature_window": {"chainage": 3.0, "shift": 0.0,
+                                                       "spread": float("inf")}})
+    assert "too few points" in thin
 
 
 def test_synth_refuses_a_pair_too_large_for_memory_and_streams_it(

@@ -231,8 +231,7 @@ def register_epochs(
     if not reg.axial_uncertainty <= limit:
         raise RegistrationError(
             f"the position of the compared epoch along the tunnel is undetermined "
-            f"(+-{reg.axial_uncertainty:.2f} m > {limit} m): the common stretch has no features "
-            "along the axis (chamber, bend, width change, rough rock); set "
+            f"(+-{reg.axial_uncertainty:.2f} m > {limit} m): {_why_undetermined(reg.info)}; set "
             "registration.max_axial_uncertainty = inf to accept it anyway"
         )
     check = None
@@ -286,6 +285,23 @@ def _bend_checks(checks: list, ref: Cloud, cmp: Cloud, ref_cl: Any, transform: n
     keep = ("registration.translation_residual", "registration.translation_convergence")
     return ([c for c in checks if c.name not in _SLIDE_CHECKS]
             + [c for c in network_registration_checks(rigid, config.quality) if c.name in keep])
+
+
+def _why_undetermined(info: dict[str, Any]) -> str:
+    """Why the registration left the position along the axis open, from its ``info``: no
+    feature at all, or none that the section images around the point-to-plane slide's
+    strongest one confirm (a prism's noise, or a small chamber beside a conveyor whose coal
+    changed: both read the same here)."""
+    window = info.get("axial_feature_window")
+    if not window:
+        return ("the common stretch has no features along the axis (chamber, bend, width "
+                "change, rough rock)")
+    seen = (f"match about as well {window['spread']:.2f} m either way"
+            if np.isfinite(window["spread"]) else "hold too few points to judge")
+    return ("the common stretch shows no feature along the axis that the section images "
+            "confirm (around the point-to-plane slide's strongest one, near chainage "
+            f"{window['chainage']:.1f} m, they {seen}; changed clutter such as coal or moved "
+            "equipment can drown a small chamber)")
 
 
 def _check_section_sizes(ref_ex: Any, cmp_ex: Any) -> None:
