@@ -16,15 +16,17 @@ from scipy.spatial.transform import Rotation
 from tunneldef.config import QualityConfig
 from tunneldef.quality import direction_check, tilt_check
 from tunneldef.registration.axial import neighbour_centroids, rigid_fit, translation_fit
+from tunneldef.registration.verify import rigid_convergence
 from tunneldef.registration.views import normals
 from tunneldef.transforms import apply_transform
 
 
-def _flat_then_ramp(rng: np.random.Generator, n: int, sigma: float = 0.005) -> np.ndarray:
-    """A 4 m x 3 m rectangular drift: flat for 40 m, then up a 12 % ramp for 40 m."""
+def _flat_then_ramp(rng: np.random.Generator, n: int, sigma: float = 0.005,
+                    grade: float = 0.12) -> np.ndarray:
+    """A 4 m x 3 m rectangular drift: flat for 40 m, then up a ramp (12 %) for 40 m."""
     s, u = rng.uniform(0.0, 80.0, n), rng.uniform(0.0, 1.0, n)
     side = rng.integers(0, 4, n)  # left wall, right wall, floor, roof
-    floor = np.where(s < 40.0, 0.0, 0.12 * (s - 40.0))
+    floor = np.where(s < 40.0, 0.0, grade * (s - 40.0))
     y = np.where(side == 0, -2.0, np.where(side == 1, 2.0, -2.0 + 4.0 * u))
     z = floor + np.where(side < 2, 3.0 * u, np.where(side == 2, 0.0, 3.0))
     return np.c_[s, y, z] + rng.normal(0.0, sigma, (n, 3))
@@ -47,6 +49,25 @@ def test_rigid_fit_holds_the_slide_that_a_translation_trades_for_a_tilt() -> Non
     # the translation alone takes the tilt's height change on the ramp for a slide
     t = translation_fit(ref, normals(ref), moved, tree=tree)
     assert abs(np.mean(moved[:, 0] + t[0] - cmp[:, 0])) > 0.02
+
+
+def test_rigid_convergence_tells_a_held_slide_from_a_free_one() -> None:
+    """Started 2 cm before and after the pose along the drift, the rigid fit ends in one
+    place where the ramp holds the slide, and wanders on a plain drift (the compared points
+    10 m inside the reference's ends either way, whose edges would draw every start alike)."""
+    rng = np.random.default_rng(4)
+
+    def spread(grade: float) -> tuple[float, np.ndarray]:
+        ref, cmp = _flat_then_ramp(rng, 150_000, grade=grade), _flat_then_ramp(rng, 40_000,
+                                                                                grade=grade)
+        inner = cmp[(cmp[:, 0] > 10.0) & (cmp[:, 0] < 70.0)]
+        return rigid_convergence(ref, inner, np.array([1.0, 0.0, 0.0]))
+
+    held, ends = spread(0.12)
+    assert held < 0.005 and np.abs(ends).max() < 0.01, (held, ends)  # and near the truth
+    free, ends = spread(0.0)
+    assert free > 2 * QualityConfig().max_axial_spread, free  # nothing along the drift
+    assert ends.shape == (3, 3)
 
 
 def test_rigid_fit_reports_no_surface() -> None:

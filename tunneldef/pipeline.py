@@ -272,9 +272,12 @@ def _bend_checks(checks: list, ref: Cloud, cmp: Cloud, ref_cl: Any, transform: n
     0.8 mm off the slides read 21 mm from one start and ended 71 mm apart from starts 2 cm
     either side, where the rigid fit read 0.3 mm, and 0.5 mm apart; on another, 2.8 mm off,
     the section images "matched better" elsewhere: these positions are the ones the images
-    had already left open)."""
-    from .quality import network_registration_checks
-    from .registration.verify import verify_network
+    had already left open). A rigid fit with the rotations, started from the pose and 2 cm
+    either side of it along the drift, must end in one place too
+    (:func:`~tunneldef.registration.verify.rigid_convergence`): on a ramp the translation
+    alone reads a slide that a small pitch cancels as none."""
+    from .quality import network_registration_checks, rigid_convergence_check
+    from .registration.verify import rigid_convergence, verify_network
     from .spatial import random_subset
 
     ppm = config.registration.max_points_per_metre
@@ -283,8 +286,11 @@ def _bend_checks(checks: list, ref: Cloud, cmp: Cloud, ref_cl: Any, transform: n
     rigid = verify_network(random_subset(ref.xyz, n, 11), moved, ref_cl.length,
                            points_per_metre=ppm)
     keep = ("registration.translation_residual", "registration.translation_convergence")
+    ends = ref_cl.point_at(np.array([0.0, ref_cl.length]))
+    spread, _ = rigid_convergence(random_subset(ref.xyz, n, 11), moved, ends[1] - ends[0])
     return ([c for c in checks if c.name not in _SLIDE_CHECKS]
-            + [c for c in network_registration_checks(rigid, config.quality) if c.name in keep])
+            + [c for c in network_registration_checks(rigid, config.quality) if c.name in keep]
+            + [rigid_convergence_check(spread, config.quality)])
 
 
 def _why_undetermined(info: dict[str, Any]) -> str:

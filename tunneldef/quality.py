@@ -34,6 +34,7 @@ __all__ = [
     "topology_checks",
     "centerline_checks",
     "upright_check",
+    "rigid_convergence_check",
     "registration_checks",
     "deformation_checks",
     "edge_checks",
@@ -344,6 +345,21 @@ def tilt_check(tilt_deg: float, qc: QualityConfig) -> Check:
         "round (a flat drift going on up a ramp); if the scans are not levelled, set "
         "registration.coarse_vertical = \"pca\"",
         "angle between the compared epoch's vertical, registered, and the reference's",
+    )
+
+
+def rigid_convergence_check(spread: float, qc: QualityConfig) -> Check:
+    """How far apart a rigid point-to-plane fit ends from the registered pose and from 2 cm
+    either side of it along the drift (:func:`~tunneldef.registration.verify.rigid_convergence`),
+    held to the slides' convergence limit: for a drift that the curves' shapes placed."""
+    return _check(
+        "registration.rigid_convergence", spread, qc.max_axial_spread, "<=", "m",
+        "started 2 cm before and after the registered position along the drift, the rigid "
+        "point-to-plane fit (rotations included) ends elsewhere: the surfaces trade a slide "
+        "along the drift for a small tilt (a flat drift going on up a ramp), so the position "
+        "along it is known no better than this; a stretch with a chamber, a junction or a "
+        "bend in plan fixes it",
+        "largest distance between where a compared point lies in the three fitted poses",
     )
 
 

@@ -22,7 +22,10 @@ A drift network (:func:`verify_network`) has no one axis to slide along: its cro
 the position in plan where a single drift cannot. There the fit is judged as above, and the
 position by a three-degree-of-freedom point-to-plane translation from the registered pose and
 from 2 cm beside it along x and y: it must find nothing left to move, and end in one place
-from every start.
+from every start. A drift the curves' shapes placed (a bend, a flat stretch going on up a ramp)
+is judged by the same translation and by a rigid fit, rotations included, started 2 cm before
+and after the registered position along the drift (:func:`rigid_convergence`): on a ramp a
+translation alone reads a slide cancelled by a small pitch as no slide at all.
 
 One idea at this length: the independent check of a finished registration, of a drift and of
 a network.
@@ -47,7 +50,9 @@ from .axial import (
     _mismatch,
     coarse_shift,
     concurrent_slides,
+    neighbour_centroids,
     noise_kernel,
+    rigid_fit,
     section_image,
     translation_fit,
 )
@@ -55,7 +60,7 @@ from .views import axial_correction, normals
 
 __all__ = [
     "RegistrationCheck", "verify_registration", "NetworkCheck", "verify_network",
-    "coherent_misfit", "patch_medians", "PatchMedians",
+    "coherent_misfit", "patch_medians", "PatchMedians", "rigid_convergence",
 ]
 
 _SAMPLE = 25_000  # least points per epoch and half the plane fits use
@@ -810,3 +815,61 @@ def _weakest_direction(
     if total <= 0:
         return np.full(3, np.nan), np.nan
     return vecs[:, 0] * np.sign(vecs[np.argmax(np.abs(vecs[:, 0])), 0]), float(vals[0] / total)
+
+
+def rigid_convergence(
+    ref_xyz: np.ndarray,
+    cmp_xyz: np.ndarray,
+    along: np.ndarray,
+    *,
+    sample: int = 60_000,
+) -> tuple[float, np.ndarray]:
+    """Where a rigid point-to-plane fit (rotations included) ends from the registered pose
+    and from 2 cm before and after it along the drift.
+
+    A drift that runs flat and then goes on up a ramp holds the position along it on the
+    ramp's floor and roof alone, and those trade a slide for a small pitch: on a 120 m pair
+    registered 30 mm off along the drift, the translation fit read 1.1 mm left to move (a
+    pitch of 0.003 degrees cancels the slide's height on the ramp). The rigid fit
+    (:func:`~.axial.rigid_fit`, planes through the centroids of 16 neighbours) fits both;
+    where they hold each other only weakly, it stops near wherever it starts. So the
+    figure is how far apart the three fits end.
+
+    Parameters
+    ----------
+    ref_xyz, cmp_xyz : ndarray, shape (N, 3), (M, 3)
+        Reference points and the registered compared points (reference frame), metres.
+    along : ndarray, shape (3,)
+        The drift's direction (need not be unit).
+    sample : int
+        Compared points the fits use (those with the reference within 0.3 m).
+
+    Returns
+    -------
+    spread : float
+        Largest distance, metres, by which any compared point of the sample lies apart in
+        two of the three fitted poses (``inf`` when a fit finds too few points on the
+        reference).
+    ends : ndarray, shape (3, 3)
+        The mean displacement of the sample from its registered place in each fitted pose
+        (from the pose, 2 cm before, 2 cm after), metres.
+    """
+    origin = np.asarray(ref_xyz[0], dtype=np.float64)
+    ref = np.asarray(ref_xyz, dtype=np.float64) - origin
+    tree = cKDTree(ref)
+    cmp = np.asarray(cmp_xyz, dtype=np.float64) - origin
+    near = np.isfinite(tree.query(cmp, distance_upper_bound=0.3, workers=-1)[0])
+    pts = _shuffled_subset(cmp[near], sample, 13)
+    u = np.asarray(along, dtype=np.float64)
+    u = u / np.linalg.norm(u)
+    ref_n, planes = normals(ref, _NORMAL_RADIUS), neighbour_centroids(ref, tree)
+    placed = []
+    for side in (0.0, -1.0, 1.0):
+        start = pts + side * _PROBE * u
+        fit = rigid_fit(ref, ref_n, start, tree=tree, plane_points=planes)
+        if not np.all(np.isfinite(fit)):
+            return float("inf"), np.full((3, 3), np.nan)
+        placed.append(apply_transform(fit, start))
+    spread = max(float(np.max(np.linalg.norm(placed[i] - placed[j], axis=1)))
+                 for i in range(3) for j in range(i + 1, 3))
+    return spread, np.array([(p - pts).mean(axis=0) for p in placed])
