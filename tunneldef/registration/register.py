@@ -278,7 +278,18 @@ def _best_candidate(
         raise RegistrationError(f"the epochs could not be registered: {candidates[0][4]}")
     ok.sort(key=lambda c: (-round(c[0], 3), c[1]))
     pick, extra = 0, {}
-    if (len(ok) > 1 and ok[1][0] > ok[0][0] - 0.01
+    if (len(ok) > 1 and _determined(ok[1]) and not _determined(ok[0])
+            and ok[1][0] >= ok[0][0] - DIRECTION_POSITION_MARGIN):
+        # turned end for end, a straight drift's chamber lies on the other side: its images
+        # match nowhere along the drift and that way round is left undetermined, yet it may
+        # overlap the reference a little more (a later survey 8 m longer: 0.861 against
+        # 0.849, and the run was refused where the other way round registered exactly). The
+        # way round whose features fix its position is the survey's.
+        pick = 1
+        extra = {"direction_by_position": True}
+        logger.info("the way round whose position along the tunnel its features fix is kept "
+                    "(overlap evidence %.3f against %.3f)", ok[1][0], ok[0][0])
+    elif (len(ok) > 1 and ok[1][0] > ok[0][0] - 0.01
             and abs(ok[1][1] - ok[0][1]) < 0.1 * ok[0][1]
             and _apart(ok[0][3], ok[1][3], ctx.cmp_s) > _SAME_POSE):
         # the tunnel looks the same both ways round (a flat drift going on up a ramp, turned
@@ -319,6 +330,17 @@ DIRECTION_TILT_GAP_DEG = 1.0
 #: two direction candidates that end this close (largest move of a compared point, m) are one
 #: pose: the views turned one of them round
 _SAME_POSE = 0.5
+
+#: a direction candidate whose position along the axis is determined is kept over one whose
+#: position is not when its overlap evidence trails by at most this
+DIRECTION_POSITION_MARGIN = 0.05
+
+
+def _determined(candidate: tuple) -> bool:
+    """Whether a direction candidate's position along the axis is fixed (its uncertainty
+    finite and at most a metre, the limit beyond which :func:`register` calls it open)."""
+    u = float(candidate[3][3].get("axial_uncertainty", np.inf))
+    return bool(np.isfinite(u) and u <= 1.0)
 
 
 def _apart(a: tuple, b: tuple, cmp_xyz: np.ndarray) -> float:
