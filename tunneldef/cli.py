@@ -359,11 +359,11 @@ def cmd_detect(args: argparse.Namespace) -> int:
                      memory_gb=args.memory) as engine:
         tiles = {"tile_length": args.tile_length, "memory_gb": engine.tile_memory_gb,
                  "engine": engine, "workdir": tile_dir}
+        if args.no_drift_correction:
+            config = config.replace(network={"drift_correction": False})
         if network:
             from .pipeline import detect_network
 
-            if args.no_drift_correction:
-                config = config.replace(network={"drift_correction": False})
             result = detect_network(ref, cmp, config, progress=progress, tiles=tiles)
         else:
             result = detect(ref, cmp, config, progress=progress, tiles=tiles,
@@ -554,7 +554,8 @@ def build_parser() -> argparse.ArgumentParser:
               "default: when either epoch's plan shows a junction or a corner",
               "one drift: refuse epochs whose plan shows junctions or corners")
     p.add_argument("--no-drift-correction", action="store_true",
-                   help="for a drift network: no piecewise-rigid SLAM-drift correction")
+                   help="no piecewise-rigid SLAM-drift correction along the reference "
+                   "centreline (or each edge of a network) after the rigid registration")
     p.add_argument("--force", action="store_true",
                    help="write the result even if a quality check fails; the outputs (summary, "
                    "LAS/PLY header) are then marked UNVERIFIED")

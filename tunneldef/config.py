@@ -293,11 +293,20 @@ class NetworkConfig:
                                         "on are one edge through the junction, deg")
     zone_margin: float = _p(0.5, "ours: junction zones reach this far beyond the other "
                                  "drift's wall, m")
-    drift_correction: bool = _p(True, "ours: after the rigid registration of two networks, "
-                                      "a piecewise-rigid correction of SLAM drift along each "
-                                      "edge, used only when it lowers the residual by more "
-                                      "than 0.5 mm RMS; false switches it off")
+    drift_correction: bool = _p(True, "ours: after the rigid registration (of one drift or "
+                                      "of two networks), a piecewise-rigid correction of SLAM "
+                                      "drift along the reference centreline or each edge, "
+                                      "used only when it lowers the coherent misfit by more "
+                                      "than 0.5 mm; false switches it off")
     drift_block: float = _p(20.0, "ours: length of the blocks of the drift correction, m")
+    drift_block_fine: float = _p(10.0, "ours: a shorter block length tried after drift_block, "
+                                       "kept where it lowers the coherent misfit by more than "
+                                       "0.5 mm below drift_block's (drift that bends within a "
+                                       "block); 0 tries drift_block alone, m")
+    drift_change: float = _p(0.008, "ours: a 1 m patch whose median misfit after a block's "
+                                    "first fit exceeds this (and three standard errors) is "
+                                    "left out of its second fit, so a sag or a bulge does not "
+                                    "pull the block; 0 fits each block once on all points, m")
     max_left_out_length: float = _p(15.0, "ours: a dead end up to this long whose own checks "
                                           "fail (a cross-cut seen a few metres in from the "
                                           "main drift) is left out of the measurement, said "

@@ -185,13 +185,38 @@ class RegisteredPair:
     registration: Any
     quality: QualityReport = field(default_factory=QualityReport)
     registration_check: Any = None
+    #: the compared points in the reference frame when ``register_epochs`` moved them itself
+    #: (``correct_drift``): rigidly, then corrected for SLAM drift where that was used
+    moved_xyz: np.ndarray | None = None
+    #: the compared centreline carried along with ``moved_xyz``
+    moved_cmp_centerline: Any = None
+    #: the drift correction's figures (:func:`~tunneldef.registration.network.correct_drift`)
+    drift_correction: dict[str, Any] = field(default_factory=dict)
 
 
 def register_epochs(
     ref: Cloud, cmp: Cloud, config: Config | None = None, *,
     progress: ProgressCallback | None = None,
+    correct_drift: bool = False,
 ) -> RegisteredPair:
     """Extract both centrelines and register the compared epoch onto the reference.
+
+    Parameters
+    ----------
+    ref, cmp : Cloud
+        Reference and compared epochs, any frames, metres.
+    config : Config
+        Parameters.
+    progress : callable, optional
+        ``progress(stage, fraction)``.
+    correct_drift : bool
+        After the rigid centreline registration, also correct SLAM drift along the
+        reference centreline (``[network] drift_correction``, blocks of ``drift_block``
+        metres, or ``drift_block_fine`` where those take out more of it:
+        :func:`~tunneldef.registration.network.correct_drift`), and check the
+        registration on the corrected points. The result is then no rigid transform: the
+        moved points come back in ``moved_xyz``. Off for a registration whose product is
+        the transform alone.
 
     Returns
     -------
@@ -235,13 +260,19 @@ def register_epochs(
             "registration.max_axial_uncertainty = inf to accept it anyway"
         )
     check = None
+    moved_xyz, moved_cl, drift = None, None, {"enabled": False, "used": False}
     if reg.method == "centerline":
         from .registration.register import tilt_deg
         from .registration.verify import verify_registration
 
+        cmp_xyz, transform, cmp_cl = cmp.xyz, np.asarray(reg.transform), cmp_ex.centerline
+        if correct_drift and config.network.drift_correction:
+            moved_xyz, moved_cl, drift = _single_drift_correction(
+                ref, cmp, ref_ex.centerline, cmp_ex.centerline, transform, config, progress)
+            cmp_xyz, transform, cmp_cl = moved_xyz, np.eye(4), moved_cl
         notify(progress, "registration check", 0.0)
-        check = verify_registration(ref.xyz, cmp.xyz, ref_ex.centerline, transform=reg.transform,
-                                    cmp_centerline=cmp_ex.centerline,
+        check = verify_registration(ref.xyz, cmp_xyz, ref_ex.centerline, transform=transform,
+                                    cmp_centerline=cmp_cl,
                                     search=config.registration.axial_search or 10.0,
                                     points_per_metre=config.registration.max_points_per_metre)
         levelled = config.registration.coarse_vertical == "world"
@@ -249,10 +280,63 @@ def register_epochs(
         checks = registration_checks(check, config.quality) + [
             direction_check(reg.info), tilt_check(tilt, config.quality)]
         if reg.info.get("axial_curve", {}).get("informative"):
-            checks = _bend_checks(checks, ref, cmp, ref_ex.centerline, reg.transform, config)
+            checks = _bend_checks(checks, ref, cmp_xyz, ref_ex.centerline, transform, config)
         notify(progress, "registration check", 1.0)
         report.add(checks)
-    return RegisteredPair(ref_ex, cmp_ex, reg, report, check)
+    return RegisteredPair(ref_ex, cmp_ex, reg, report, check, moved_xyz, moved_cl, drift)
+
+
+def _single_drift_correction(
+    ref: Cloud, cmp: Cloud, ref_cl: Centerline, cmp_cl: Centerline, transform: np.ndarray,
+    config: Config, progress: ProgressCallback | None,
+) -> tuple[np.ndarray, Centerline, dict[str, Any]]:
+    """The compared points moved by ``transform`` and then corrected for SLAM drift along the
+    reference centreline (a network of one edge), with the compared centreline carried along.
+
+    A handheld SLAM map of one drift bends slowly away from the other epoch's (a few
+    centimetres per 100 m): one rigid transform leaves it there, and the deformation field
+    reads it as change. On a 166 m bent drift drifting about 6 cm per epoch, registered
+    rigidly and verified, 33 % of the unchanged shell read beyond 10 mm and a 36 mm wall
+    bulge read 24 mm.
+    """
+    from .network import CenterlineNetwork, NetworkEdge
+    from .registration.network import correct_drift
+
+    notify(progress, "drift correction", 0.0)
+    moved = apply_transform(transform, cmp.xyz)
+    net = CenterlineNetwork((NetworkEdge(0, "drift", ref_cl),))
+    moved, drift = correct_drift(ref.xyz, moved, net, inplace=True,
+                                 **_drift_settings(config))
+    drift["enabled"] = True
+    cl = cmp_cl.transformed(transform)
+    if drift["used"]:
+        step = max(len(moved) // 200_000, 1)
+        before = apply_transform(transform, cmp.xyz[::step])
+        pts = cl.points + _carried(before, moved[::step], cl.points)
+        cl = Centerline.from_polyline(pts, step=float(np.median(np.diff(cl.chainage))),
+                                      centres=cl.centres, meta=cl.meta)
+    _log_drift(drift)
+    notify(progress, "drift correction", 1.0)
+    return moved, cl, drift
+
+
+def _drift_settings(config: Config) -> dict[str, Any]:
+    """``correct_drift``'s block lengths (longest first) and change limit from ``[network]``."""
+    nc = config.network
+    blocks = (nc.drift_block,)
+    if 0 < nc.drift_block_fine < nc.drift_block:
+        blocks = (nc.drift_block, nc.drift_block_fine)
+    return {"block": blocks, "change": nc.drift_change if nc.drift_change > 0 else None}
+
+
+def _log_drift(drift: dict[str, Any]) -> None:
+    """One log line: whether the SLAM-drift correction was used, and what it changed."""
+    if not drift.get("enabled"):
+        return
+    cb, ca = drift.get("coherent_before_m", np.nan), drift.get("coherent_after_m", np.nan)
+    log.info("SLAM-drift correction (%.0f m blocks) %s: coherent misfit %.1f -> %.1f mm",
+             drift.get("block_m", np.nan), "used" if drift.get("used") else "not used",
+             1e3 * cb, 1e3 * ca)
 
 
 #: checks of the position along the axis by the section images and by the slides along the
@@ -261,8 +345,8 @@ _SLIDE_CHECKS = ("registration.axial_residual", "registration.axial_convergence"
                  "registration.axial_pose", "registration.axial_agreement")
 
 
-def _bend_checks(checks: list, ref: Cloud, cmp: Cloud, ref_cl: Any, transform: np.ndarray,
-                 config: Config) -> list:
+def _bend_checks(checks: list, ref: Cloud, cmp_xyz: np.ndarray, ref_cl: Any,
+                 transform: np.ndarray, config: Config) -> list:
     """The position along the axis of a drift that the curves' shapes placed (a bend between
     straights, surfaces without features): its check is a rigid point-to-plane translation
     fit from the registered pose and from 2 cm off, which the bend's walls hold
@@ -282,7 +366,7 @@ def _bend_checks(checks: list, ref: Cloud, cmp: Cloud, ref_cl: Any, transform: n
 
     ppm = config.registration.max_points_per_metre
     n = max(400_000, int(2 * ppm * ref_cl.length))
-    moved = apply_transform(transform, random_subset(cmp.xyz, n, 12))
+    moved = apply_transform(transform, random_subset(cmp_xyz, n, 12))
     rigid = verify_network(random_subset(ref.xyz, n, 11), moved, ref_cl.length,
                            points_per_metre=ppm)
     keep = ("registration.translation_residual", "registration.translation_convergence")
@@ -340,7 +424,12 @@ class Result:
         ``deformation_vertical``, ``chainage`` (m) and uint8 ``danger`` (plus ``shell``,
         ``surface``, ``significant``, ``lod95`` when the estimator gives them).
     transform : ndarray, shape (4, 4)
-        Compared -> reference rigid transform.
+        Compared -> reference rigid transform (before the SLAM-drift correction, when that
+        was used: ``drift_correction["used"]``).
+    drift_correction : dict
+        The piecewise-rigid SLAM-drift correction along the reference centreline
+        (:func:`~tunneldef.registration.network.correct_drift`): whether it was enabled and
+        used, the coherent misfit before and after, the blocks' shifts.
     """
 
     cloud: Cloud
@@ -357,6 +446,7 @@ class Result:
     cmp_slices: list[Any] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     quality: QualityReport | None = None
+    drift_correction: dict[str, Any] = field(default_factory=dict)
 
     def statistics(self) -> dict[str, Any]:
         """Global statistics of the signed deformation on shell points (m)."""
@@ -391,6 +481,7 @@ class Result:
             "sign_convention": "negative = the surface moved into the tunnel (roof sag, wall "
                                "bulge, floor heave); positive = outward",
             "quality": self.quality.to_dict() if self.quality is not None else None,
+            "drift_correction": self.drift_correction,
         }
 
 
@@ -449,18 +540,25 @@ def detect(
     config = config or Config()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    reg_all = register_epochs(ref, cmp, config, progress=progress)
+    reg_all = register_epochs(ref, cmp, config, progress=progress, correct_drift=True)
     reg = reg_all.registration
     timings["centrelines_and_registration"] = time.perf_counter() - t0
 
     t = time.perf_counter()
     transform = np.asarray(reg.transform, dtype=np.float64)
+    # the compared points in the reference frame: moved rigidly here, or already moved (and
+    # corrected for SLAM drift) by the registration
+    xyz, reg_all.moved_xyz = reg_all.moved_xyz, None
     if overwrite_compared and cmp.xyz.flags.writeable:
         for a in range(0, len(cmp), _CHUNK):
-            cmp.xyz[a:a + _CHUNK] = apply_transform(transform, cmp.xyz[a:a + _CHUNK])
+            cmp.xyz[a:a + _CHUNK] = (apply_transform(transform, cmp.xyz[a:a + _CHUNK])
+                                     if xyz is None else xyz[a:a + _CHUNK])
         moved = cmp
-    else:
+    elif xyz is None:
         moved = cmp.transformed(transform)
+    else:
+        moved = Cloud(xyz, dict(cmp.fields), dict(cmp.meta))
+    del xyz
     ref_cl = reg_all.ref_extraction.centerline
     if tiles is None:
         projection = ref_cl.project(moved.xyz)
@@ -524,7 +622,8 @@ def detect(
         transform=transform,
         registration=reg,
         ref_centerline=ref_cl,
-        cmp_centerline=reg_all.cmp_extraction.centerline.transformed(transform),
+        cmp_centerline=(reg_all.moved_cmp_centerline if reg_all.moved_cmp_centerline
+                        is not None else reg_all.cmp_extraction.centerline.transformed(transform)),
         deformation=d,
         sections=sections,
         zones=zones,
@@ -534,6 +633,7 @@ def detect(
         cmp_slices=list(reg_all.cmp_extraction.slices),
         timings=timings,
         quality=reg_all.quality,
+        drift_correction=reg_all.drift_correction,
     )
 
 
@@ -733,8 +833,9 @@ def detect_network(
     drift: dict[str, Any] = {"used": False, "enabled": config.network.drift_correction}
     cmp_curves = [e.centerline.transformed(transform).points for e in cmp_net.network.edges]
     if config.network.drift_correction:
-        xyz, drift = correct_drift(ref.xyz, moved.xyz, net, block=config.network.drift_block)
+        xyz, drift = correct_drift(ref.xyz, moved.xyz, net, **_drift_settings(config))
         drift["enabled"] = True
+        _log_drift(drift)
         if drift["used"]:
             cmp_curves = [p + _carried(moved.xyz, xyz, p) for p in cmp_curves]
         moved = Cloud(xyz, moved.fields, moved.meta)
