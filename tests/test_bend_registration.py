@@ -132,7 +132,7 @@ def test_detect_corrects_slam_drift_along_one_drift() -> None:
     d = result.cloud.fields["deformation"]
     unchanged = d[truth.shell & (truth.displacement == 0)]
     unchanged = unchanged[np.isfinite(unchanged)]
-    assert np.mean(np.abs(unchanged) > 0.01) < 0.01  # 0.32 % measured
+    assert np.mean(np.abs(unchanged) > 0.01) < 0.01  # 0.05 % measured (20 m blocks: 0.3 %)
     core = truth.shell & (truth.displacement < -0.024)
     true, read = np.median(truth.displacement[core]), np.nanmedian(d[core])
-    assert read == pytest.approx(true, rel=0.15)  # -29.2 against -26.8 mm measured
+    assert read == pytest.approx(true, rel=0.15)  # -27.5 against -26.8 mm measured
