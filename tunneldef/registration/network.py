@@ -622,8 +622,6 @@ def correct_drift(
     ref_pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
     rp, rn = np.asarray(ref_pc.points), np.asarray(ref_pc.normals)
     tree = cKDTree(rp)
-    branch_c, chain_c = _branch_chainage(net, cmp_xyz, max_distance=10.0)
-    pr = net.project(rp, max_distance=10.0)
 
     def displacement(block: float) -> tuple[np.ndarray, dict[str, Any], list[float]]:
         """The blended displacement of every compared point for ``block``-metre blocks,
@@ -716,6 +714,9 @@ def correct_drift(
             "residual_rms_before_m": rb, "residual_rms_after_m": rb, "coherent_before_m": cb,
             "coherent_after_m": cb, "min_gain_m": min_gain, "change_m": change,
             "changed_share_max": None}
+    # each point's edge and chainage, for the blocks (not needed where none is fitted)
+    branch_c, chain_c = _branch_chainage(net, cmp_xyz, max_distance=10.0)
+    pr = net.project(rp, max_distance=10.0)
     best: dict[str, Any] | None = None
     tried = []
     for length in lengths:
