@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from ..curve import Centerline
-from ..spatial import query_workers
+from ..spatial import morton_order, query_workers
 from .kernels import candidate_terms, nearest_two, slide_residuals
 
 __all__ = [
@@ -581,6 +581,7 @@ def translation_fit(
     noise (as :func:`.axial.fine_shift`, with three degrees of freedom instead of one),
     started at ``start``; NaN when fewer than 100 points find the surface."""
     tree = tree if tree is not None else cKDTree(ref_xyz)
+    cmp_xyz = cmp_xyz[morton_order(cmp_xyz)]  # faster queries, the same fit (see rigid_fit)
     t = np.zeros(3) if start is None else np.array(start, dtype=np.float64)
     scale = 0.0  # no later kernel narrower than the noise (see noise_kernel)
     for stage, kernel in enumerate(kernels):
@@ -651,6 +652,10 @@ def rigid_fit(
     """
     tree = tree if tree is not None else cKDTree(ref_xyz)
     anchor = ref_xyz if plane_points is None else plane_points
+    # the points in Morton order: each iteration's nearest-neighbour query then runs about
+    # four times faster than in the random order of a sample (233,000 points: 0.66 -> 0.15 s
+    # on 2 cores), and the fit, a sum over the points, is the same
+    cmp_xyz = cmp_xyz[morton_order(cmp_xyz)]
     centre = cmp_xyz.mean(axis=0)
     local = cmp_xyz - centre
     reach = float(np.max(np.linalg.norm(local, axis=1))) if len(local) else 0.0
