@@ -511,8 +511,11 @@ def fine_shift(
         ``shift`` along ``tangents``, metres.
     """
     tree = tree if tree is not None else cKDTree(ref_xyz)
-    cmp_xyz = np.asarray(cmp_xyz, dtype=np.float64)
-    tangents = np.asarray(tangents, dtype=np.float64)
+    # in Morton order, as rigid_fit: the queries run faster and the sums are the same
+    order = morton_order(cmp_xyz)
+    cmp_xyz = np.asarray(cmp_xyz, dtype=np.float64)[order]
+    tangents = np.asarray(tangents, dtype=np.float64)[order]
+    blocks = np.asarray(blocks)[order]
     reach = 1.5 * max(kernels) + _SlidingNearest.MARGIN
     nearest = _SlidingNearest(tree, ref_xyz, cmp_xyz, tangents, reach)
     ref_pn = np.hstack([ref_xyz, ref_normals]).astype(np.float64, copy=False)
