@@ -17,6 +17,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from ..spatial import morton_order
 from ..transforms import apply_transform
 
 __all__ = ["BASELINES", "icp_point", "icp_plane", "gicp", "ndt"]
@@ -27,6 +28,12 @@ _reg = o3d.pipelines.registration
 def _pcd(xyz: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, dtype=np.float64)))
     return pc.voxel_down_sample(voxel) if voxel > 0 else pc
+
+
+def _sorted(pc: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
+    """``pc``'s points in Morton order (see :func:`_open3d_icp`)."""
+    pts = np.asarray(pc.points)
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[morton_order(pts)]))
 
 
 def _criteria(iterations: int) -> o3d.pipelines.registration.ICPConvergenceCriteria:
@@ -65,11 +72,17 @@ def _open3d_icp(
                             voxel=voxel, max_distance=max_distance, iterations=iterations,
                             ref_normals=ref_normals)
         return to_world @ local @ to_local
+    # both clouds in Morton order: Open3D's nearest-neighbour queries and the reference's
+    # points then follow space in memory (a voxel grid's points come out in hash order, a
+    # sample in random order), and each iteration runs up to twice as fast; the fit is a sum
+    # over the same correspondences
     if ref_normals is not None and kind == "plane":
-        dst = _pcd(ref_xyz, 0.0)
-        dst.normals = o3d.utility.Vector3dVector(np.asarray(ref_normals, dtype=np.float64))
+        order = morton_order(ref_xyz)
+        dst = _pcd(np.asarray(ref_xyz)[order], 0.0)
+        dst.normals = o3d.utility.Vector3dVector(
+            np.asarray(ref_normals, dtype=np.float64)[order])
     else:
-        dst = _pcd(ref_xyz, voxel)
+        dst = _sorted(_pcd(ref_xyz, voxel))
         if kind == "plane":
             dst.estimate_normals(
                 o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
@@ -79,7 +92,8 @@ def _open3d_icp(
         "plane": _reg.TransformationEstimationPointToPlane,
         "generalized": _reg.TransformationEstimationForGeneralizedICP,
     }[kind]()
-    res = run(_pcd(cmp_xyz, voxel), dst, max_distance, init, estimation, _criteria(iterations))
+    res = run(_sorted(_pcd(cmp_xyz, voxel)), dst, max_distance, init, estimation,
+              _criteria(iterations))
     return np.asarray(res.transformation)
 
 
