@@ -1,10 +1,11 @@
-"""Point orderings and subsets shared by the stages: a Morton order, a seeded random subset."""
+"""Point orderings and subsets shared by the stages: a Morton order, a seeded random subset,
+and Open3D's voxel grid and normals run in that order."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["morton_order", "random_subset", "query_workers"]
+__all__ = ["morton_order", "random_subset", "query_workers", "voxel_grid", "plane_normals"]
 
 #: Below this many query points a KD-tree query runs on the calling thread: scipy starts a
 #: Python thread per worker and call, which costs more than a small query saves.
@@ -111,3 +112,67 @@ def query_workers(n: int, workers: int = -1) -> int:
     The answer does not depend on the thread count; only the time does.
     """
     return workers if n >= THREADED_QUERY_MIN else 1
+
+
+def voxel_grid(xyz: np.ndarray, voxel: float) -> np.ndarray:
+    """The centroids of the points in each ``voxel``-metre cell (Open3D's voxel grid), in
+    Morton order.
+
+    Open3D returns the cells in hash order: a KD-tree built on them, or a normal estimation
+    over them, then reads memory at random. In Morton order the same normals of 628,000
+    points took 1.4 s instead of 4.6 s on 2 cores.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (N, 3)
+        Points, metres.
+    voxel : float
+        Cell edge, metres.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        One point per occupied cell.
+    """
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, dtype=np.float64)))
+    pts = np.asarray(pc.voxel_down_sample(voxel).points)
+    return pts[morton_order(pts)]
+
+
+def plane_normals(xyz: np.ndarray, radius: float, max_nn: int) -> np.ndarray:
+    """Unit normals of the points' local planes, from their ``max_nn`` nearest neighbours
+    within ``radius`` m (Open3D's hybrid search), unoriented.
+
+    The estimate runs on the points in Morton order and the normals come back in the
+    points' own order: the same normals (to 2e-15) 3.3 times faster than on a voxel grid's
+    hash order. The points are moved to their centroid first, so survey coordinates keep
+    their normals.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (N, 3)
+        Points, metres.
+    radius : float
+        Neighbourhood radius, metres.
+    max_nn : int
+        Largest number of neighbours.
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+    """
+    import open3d as o3d
+
+    xyz = np.asarray(xyz, dtype=np.float64)
+    order = morton_order(xyz)
+    # about the points' centroid: Open3D sums raw first and second moments, and in survey
+    # coordinates (5.6e6 m) their difference loses every digit of a 0.4 m neighbourhood's
+    # covariance (normals of a plane came out 76 degrees off at the median)
+    centre = xyz[:: max(len(xyz) // 1000, 1)].mean(axis=0) if len(xyz) else np.zeros(3)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz[order] - centre))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+    out = np.empty_like(xyz)
+    out[order] = np.asarray(pc.normals)
+    return out

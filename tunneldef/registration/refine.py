@@ -18,7 +18,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from ..curve import Centerline
-from ..spatial import query_workers
+from ..spatial import plane_normals, query_workers, voxel_grid
 from ..transforms import apply_transform
 
 __all__ = ["OffsetTest", "refine_stable", "shell_offset"]
@@ -49,8 +49,10 @@ def refine_stable(
     ref_s = _shell_mask(ref_xyz, ref_cl)
     cmp_s = _shell_mask(cmp_xyz, ref_cl)
     ref_pts = ref_xyz[ref_s]
-    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ref_pts)).voxel_down_sample(voxel)
-    dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
+    # both clouds in Morton order (Open3D's voxel grids come out in hash order, and their
+    # normals and ICP queries then read memory at random), normals about the centroid
+    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(voxel_grid(ref_pts, voxel)))
+    dst.normals = o3d.utility.Vector3dVector(plane_normals(np.asarray(dst.points), 4 * voxel, 30))
     reg = o3d.pipelines.registration
     tree = cKDTree(ref_pts)
     total = np.eye(4)
@@ -61,8 +63,7 @@ def refine_stable(
         if keep < 1.0:
             d, _ = tree.query(moved, workers=query_workers(len(moved)))
             sel &= d <= np.quantile(d[cmp_s], keep)
-        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved[sel]))
-        src = src.voxel_down_sample(voxel)
+        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(voxel_grid(moved[sel], voxel)))
         res = reg.registration_icp(
             src,
             dst,

@@ -31,11 +31,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from ..curve import Centerline
 from ..errors import RegistrationError
+from ..spatial import plane_normals
 from ..transforms import apply_transform
 from .axial import (
     AxialShift,
@@ -605,7 +605,6 @@ def axial_correction(
 
 
 def normals(xyz: np.ndarray, radius: float = 0.15) -> np.ndarray:
-    """Unit normals (N, 3) of points (N, 3) from their neighbours within ``radius`` m."""
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz - xyz.mean(axis=0)))
-    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=16))
-    return np.asarray(pc.normals)
+    """Unit normals (N, 3) of points (N, 3) from their 16 nearest neighbours within ``radius``
+    m (:func:`~tunneldef.spatial.plane_normals`), unoriented."""
+    return plane_normals(xyz, radius, 16)
