@@ -23,6 +23,7 @@ from ..config import DeformationConfig
 from ..curve import Centerline, Projection
 from ..errors import ConfigError, InvalidCloudError
 from ..progress import ProgressCallback, notify, scaled, timed_stage
+from ..spatial import unique_rows
 from . import shell as shell_module
 from .knn import counterpart_projection, knn_counterparts, manhattan_split
 from .result import DeformationResult
@@ -155,7 +156,7 @@ def _near(points: np.ndarray, centres: np.ndarray, cell: float) -> np.ndarray:
     def keys(ijk: np.ndarray) -> np.ndarray:
         return (ijk[:, 0] * 1_000_003 + ijk[:, 1]) * 1_000_033 + ijk[:, 2]
 
-    ijk = np.unique(np.floor((centres - lo) / cell).astype(np.int64), axis=0)
+    ijk = unique_rows(np.floor((centres - lo) / cell).astype(np.int64))[0]
     steps = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
     around = np.unique(keys((ijk[:, None, :] + steps[None]).reshape(-1, 3)))
     pk = keys(np.floor((points - lo) / cell).astype(np.int64))

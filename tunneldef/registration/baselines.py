@@ -17,7 +17,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from ..spatial import morton_order
+from ..spatial import morton_order, unique_rows
 from ..transforms import apply_transform
 
 __all__ = ["BASELINES", "icp_point", "icp_plane", "gicp", "ndt"]
@@ -143,8 +143,7 @@ def gicp(
 
 def _ndt_cells(xyz: np.ndarray, cell: float, min_points: int = 6):
     key = np.floor(xyz / cell).astype(np.int64)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    _, inv, cnt = unique_rows(key)
     ok = cnt >= min_points
     n = len(cnt)
     s1 = np.zeros((n, 3))

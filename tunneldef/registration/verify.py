@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from ..curve import Centerline
 from ..engine import thread_map
-from ..spatial import random_subset
+from ..spatial import random_subset, unique_rows
 from ..transforms import apply_transform
 from .axial import (
     AxialShift,
@@ -229,8 +229,7 @@ def patch_medians(
     if ok.sum() < 100:
         return None
     p, nrm = src[ok], dst_n[j[ok]]
-    key, cells = np.unique(np.floor(p / cell).astype(np.int64), axis=0, return_inverse=True)
-    cells = cells.ravel()
+    key, cells, _ = unique_rows(np.floor(p / cell).astype(np.int64))
     # normals carry no sign: turn each to agree with its patch's main normal (the structure
     # tensor's first eigenvector), so that one offset reads with one sign across the patch
     outer = (nrm[:, :, None] * nrm[:, None, :]).reshape(-1, 9)
@@ -372,8 +371,7 @@ def _paired_excess(cross: PatchMedians | None, own: PatchMedians | None) -> floa
     if len(a) < 10 or len(b) < 10:
         return np.nan
     both = np.concatenate([a, b])
-    _, inv, counts = np.unique(both, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    _, inv, counts = unique_rows(both)
     ia = np.flatnonzero(counts[inv[: len(a)]] == 2)
     if len(ia) < 10:
         return np.nan
