@@ -540,3 +540,80 @@ def test_chamber_and_holes_read_quietly_and_objects_keep_knn():
     assert np.isnan(d.lod95[coal]).mean() > 0.8 and d.shell[coal].mean() < 0.05
     danger, _ = danger_zones(d, threshold=0.02)
     assert danger[coal].sum() == 0
+
+
+def _sheet(z: float, n: int, rng: np.random.Generator, sigma: float = 0.005) -> np.ndarray:
+    """``n`` points on the 3 x 3 m plane at height ``z`` (noise ``sigma`` across it)."""
+    xy = rng.uniform(0.0, 3.0, (n, 2))
+    return np.column_stack([xy, z + rng.normal(0.0, sigma, n)])
+
+
+def test_a_change_one_epoch_shows_both_surfaces_of_is_not_vouched_for() -> None:
+    """A SLAM map that scanned a wall twice, 8 cm apart, shows both surfaces; the shell
+    classifier keeps the outer one and reads +80 mm where nothing moved. A change that one
+    epoch contradicts by holding the other surface too is found (either epoch doubled); a
+    real change of the same size, and one too small to separate from the noise, are not."""
+    from tunneldef.deformation.compute import two_surfaces
+
+    rng = np.random.default_rng(3)
+    one, other = _sheet(0.0, 3600, rng), _sheet(0.08, 3600, rng)
+    up = np.tile([0.0, 0.0, 1.0], (3600, 1))
+    centre = np.all(np.abs(other[:, :2] - 1.5) < 1.0, axis=1)  # away from the sheets' edges
+
+    def flagged(ref: np.ndarray, cmp: np.ndarray, test: np.ndarray, d: float) -> float:
+        out = two_surfaces(ref, cmp, test, np.full(len(cmp), d), np.tile(up[0], (len(cmp), 1)),
+                           0.005, 0.2)
+        return float(out[test].mean())
+
+    # the compared epoch doubled: its outer sheet read +80 mm against the reference's one
+    cmp = np.vstack([other, one])
+    test = np.r_[centre, np.zeros(3600, dtype=bool)]
+    assert flagged(one, cmp, test, 0.08) > 0.99
+    # the reference doubled: its outer sheet kept, the compared single sheet reads -80 mm
+    assert flagged(np.vstack([one, other]), _sheet(0.0, 3600, rng), centre, -0.08) > 0.99
+    # a real change of 80 mm: one surface in each epoch
+    assert flagged(one, other, centre, 0.08) < 0.01
+    # below three noise sigmas the windows overlap: not tested
+    small = _sheet(0.012, 3600, rng)
+    assert two_surfaces(one, np.vstack([small, one]), np.r_[centre, np.zeros(3600, bool)],
+                        np.full(7200, 0.012), np.tile(up[0], (7200, 1)), 0.005, 0.2).sum() == 0
+
+
+@pytest.mark.slow
+def test_detect_gives_no_value_where_a_slam_map_holds_a_wall_twice() -> None:
+    """A stretch of the compared map scanned twice, the second pass 8 cm to the side (a
+    SLAM pass that did not close onto the first): before the two-surface test the left wall
+    read +74 mm there with a LoD95 of 8 mm and raised a danger zone 10 m long. Now those
+    points have no value, the run warns naming the stretch, and the real sag elsewhere
+    still reads at its size."""
+    from tunneldef.cloud import Cloud
+    from tunneldef.pipeline import detect
+    from tunneldef.transforms import apply_transform
+
+    a, b = 12.0, 20.0
+    pair = make_pair(tunnel=TunnelSpec(length=30.0, density=300.0, equipment=True,
+                                       section=SectionSpec("rectangle", 5.0, 3.2),
+                                       chamber=True, chamber_chainage=4.0, noise_sigma=0.015),
+                     deformations=(DeformationSpec("roof_sag", 25.0, 3.0, 1.5, 0.03),), seed=0)
+    tr = pair.truth
+    x = tr.cmp_xyz_in_ref
+    twice = (x[:, 0] > a) & (x[:, 0] < b)
+    ghost = x[twice] + np.array([0.0, 0.08, 0.0])
+    cmp = Cloud(np.vstack([pair.cmp.xyz, apply_transform(np.linalg.inv(tr.transform), ghost)]),
+                {})
+    result = detect(pair.ref, cmp)
+    assert result.zones == []
+    warned = [c for c in result.quality.warnings if c.name == "deformation.two_surfaces"]
+    assert len(warned) == 1 and f"{a:.0f}." in warned[0].reason()
+    assert result.quality.verified  # a warning: the rest of the survey stands
+    xr = np.vstack([x, ghost])
+    two = result.deformation.two_surfaces
+    assert two.sum() > 500
+    assert np.all((xr[two, 0] > a - 0.5) & (xr[two, 0] < b + 0.5))
+    d = result.cloud.fields["deformation"]
+    label = np.r_[tr.label, tr.label[twice]]
+    disp = np.r_[tr.displacement, tr.displacement[twice]]
+    wall = (label == 0) & (xr[:, 0] > a + 1) & (xr[:, 0] < b - 1) & (xr[:, 1] > 2.0)
+    assert np.mean(np.abs(d[wall]) > 0.03) < 0.02  # 14.6 % and a danger zone before
+    core = (label == 0) & (disp < -0.024)
+    assert np.nanmedian(d[core]) == pytest.approx(np.median(disp[core]), rel=0.15)

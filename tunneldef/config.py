@@ -389,6 +389,10 @@ class QualityConfig:
                                             "(robust estimator); about 5 % by chance plus the "
                                             "truly deformed shell, far more after a wrong "
                                             "registration")
+    max_two_surface_share: float = _p(0.001, "ours: share of the measured shell whose change "
+                                             "one epoch contradicts with both surfaces (a SLAM "
+                                             "map's double wall) before a warning; one in a "
+                                             "thousand is about a square metre of a 60 m drift")
 
 
 @dataclass(frozen=True)

@@ -391,7 +391,8 @@ def _remaining_slide(*slides: float) -> float:
 
 def deformation_checks(deformation: Any, qc: QualityConfig) -> list[Check]:
     """Share of shell points beyond their LoD95 (robust estimator only; a correct registration
-    leaves about 5 % by chance plus the truly deformed shell)."""
+    leaves about 5 % by chance plus the truly deformed shell), and (advisory) the share of
+    the measured shell whose change one epoch contradicts by showing both surfaces."""
     sig = getattr(deformation, "significant", None)
     if sig is None:
         return []
@@ -399,11 +400,30 @@ def deformation_checks(deformation: Any, qc: QualityConfig) -> list[Check]:
     lod = np.asarray(deformation.lod95, dtype=np.float64)
     use = shell & np.isfinite(lod)
     share = float(np.mean(np.asarray(sig, dtype=bool)[use])) if use.any() else np.nan
-    return [
+    checks = [
         _check("deformation.significant_share", share, qc.max_significant_share, "<=", "",
                "far more of the shell changed than deformation explains: the registration "
                "is probably wrong", "share of shell points whose |deformation| exceeds LoD95"),
     ]
+    two = getattr(deformation, "two_surfaces", None)
+    if two is not None:
+        two = np.asarray(two, dtype=bool)
+        both = shell & two
+        measured = shell & (np.isfinite(np.asarray(deformation.deformation)) | two)
+        figure = float(both.sum() / measured.sum()) if measured.any() else np.nan
+        where = ""
+        if both.any():
+            s = np.asarray(deformation.chainage)[both]
+            where = f" (chainage {np.min(s):.1f}-{np.max(s):.1f} m)"
+        check = _check(
+            "deformation.two_surfaces", figure, qc.max_two_surface_share, "<=", "",
+            f"one epoch shows both surfaces of a change{where}: the map holds the same "
+            "surface twice (a SLAM pass that did not close onto the other, a lining in front "
+            "of rock); those points have no value; look at both epochs there",
+            "share of the measured shell whose change one epoch contradicts by showing both "
+            "surfaces")
+        checks.append(dataclasses.replace(check, advisory=True))
+    return checks
 
 
 def edge_checks(edge: Any, qc: QualityConfig, epoch: str, junction: str, *,

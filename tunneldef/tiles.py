@@ -252,6 +252,8 @@ def _measure_task(
         fields["significant"] = d.significant
     if d.lod95 is not None:
         fields["lod95"] = d.lod95
+    if d.two_surfaces is not None:
+        fields["two_surfaces"] = d.two_surfaces
     for name, a in fields.items():
         _save(folder, f"out_{name}", np.asarray(a)[cmp_owned])
     return folder
@@ -377,7 +379,7 @@ def _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings) -> DeformationR
     n = len(cmp_xyz)
     names = ["deformation", "horizontal", "vertical", "shell"]
     if settings.method == "robust":
-        names += ["significant", "lod95"]
+        names += ["significant", "lod95", "two_surfaces"]
     out: dict[str, np.ndarray] = {}
     seen = np.zeros(n, dtype=bool)
     for t in tiles:
@@ -396,5 +398,5 @@ def _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings) -> DeformationR
         chainage=cmp_s, surface=surface, shell=out["shell"], xyz=cmp_xyz,
         method=settings.method, k=settings.k if settings.method == "knn" else None,
         significant=out.get("significant"), lod95=out.get("lod95"),
-        centerline_length=centerline.length,
+        centerline_length=centerline.length, two_surfaces=out.get("two_surfaces"),
     )

@@ -164,6 +164,96 @@ def _near(points: np.ndarray, centres: np.ndarray, cell: float) -> np.ndarray:
     return around[pos] == pk
 
 
+_TWO_SURFACE_SIGMAS = 3.0  # a change at least this many noise sigmas is tested (below, the
+# two windows overlap and one surface's own noise fills the other's)
+_TWO_SURFACE_WINDOW = 1.5  # noise sigmas: half-width of the window about each surface
+_TWO_SURFACE_SHARE = 0.3  # an epoch shows both surfaces when the other surface's window holds
+_TWO_SURFACE_MIN = 5  # at least this share of its own surface's points, and this many
+
+
+def two_surfaces(
+    ref: np.ndarray, cmp: np.ndarray, candidates: np.ndarray, deformation: np.ndarray,
+    normal: np.ndarray, sigma: float, radius: float,
+) -> np.ndarray:
+    """Which measured changes one of the epochs contradicts by showing both surfaces.
+
+    A real change leaves one surface in each epoch, ``d`` apart along the normal. Where one
+    epoch shows both (a SLAM map whose second pass over a stretch did not close onto the
+    first: the wall twice, centimetres apart; a lining or mesh in front of rock that moved
+    behind it), the shell classifier keeps the outer one and the change between the
+    surfaces reads as a clean, confident deformation that did not happen: a double wall
+    8 cm apart read +74 mm with a LoD95 of 8 mm and raised a danger zone 10 m long.
+
+    For each candidate compared point (on its surface, value ``d``, unit normal ``n``), the
+    points of each epoch within ``radius`` of the normal line through it are counted in two
+    windows of half-width ``1.5 sigma`` along it: about the compared surface (the mean
+    offset of the compared points nearer to the point than ``|d| / 2``) and about the
+    reference surface (``d`` behind it). The compared epoch shows both when the reference
+    window holds at least 30 % as many of its points (and 5) as its own; the reference epoch
+    likewise. Changes under 3 sigma are not tested (the windows overlap).
+
+    Parameters
+    ----------
+    ref, cmp : ndarray, shape (M, 3), (N, 3)
+        All points of both epochs (shell or not), registered, metres.
+    candidates : ndarray of bool, shape (N,)
+        Compared points to test (measured values).
+    deformation : ndarray, shape (N,)
+        Their signed change along ``normal``, metres.
+    normal : ndarray, shape (N, 3)
+        Unit normals of the compared surface at the points.
+    sigma : float
+        The scans' noise across a surface (the cylinders' typical spread), metres.
+    radius : float
+        Radius of the cylinder about the normal line, metres.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True where an epoch shows both surfaces of the change.
+    """
+    from .cylinders import _RadiusIndex
+
+    out = np.zeros(len(cmp), dtype=bool)
+    d_all = np.where(candidates, deformation, np.nan)
+    with np.errstate(invalid="ignore"):
+        test = np.flatnonzero(np.abs(d_all) >= _TWO_SURFACE_SIGMAS * sigma)
+    if len(test) == 0 or not np.isfinite(sigma) or sigma <= 0:
+        return out
+    w = _TWO_SURFACE_WINDOW * sigma
+    d = deformation[test]
+    reach = float(np.hypot(radius, np.max(np.abs(d)) + w))
+    centres = cmp[test]
+    origin = centres.min(axis=0)
+    n = normal[test]
+    offsets = []
+    for pts in (cmp, ref):
+        near = pts[_near(pts, centres, reach)]
+        index = _RadiusIndex(near - origin, reach)
+        group, idx, d2 = index.ball(centres - origin, reach)
+        rel = (near[idx] - centres[group]).astype(np.float64)
+        off = np.einsum("ij,ij->i", rel, n[group])
+        inside = d2.astype(np.float64) - off**2 <= radius**2
+        offsets.append((group[inside], off[inside]))
+    # the compared surface's own offset from the (noisy) point: the mean of its points
+    # nearer to it than to the reference surface
+    g, off = offsets[0]
+    mine = np.abs(off) < 0.5 * np.abs(d[g])
+    m0 = np.bincount(g[mine], weights=off[mine], minlength=len(test)) / np.maximum(
+        np.bincount(g[mine], minlength=len(test)), 1)
+    counts = []
+    for g, off in offsets:
+        at_cmp = np.abs(off - m0[g]) <= w
+        at_ref = np.abs(off - (m0[g] - d[g])) <= w
+        counts.append((np.bincount(g[at_cmp], minlength=len(test)),
+                       np.bincount(g[at_ref], minlength=len(test))))
+    (c_here, c_there), (r_here, r_there) = counts
+    both_cmp = c_there >= np.maximum(_TWO_SURFACE_MIN, _TWO_SURFACE_SHARE * c_here)
+    both_ref = r_here >= np.maximum(_TWO_SURFACE_MIN, _TWO_SURFACE_SHARE * r_there)
+    out[test] = both_cmp | both_ref
+    return out
+
+
 _AMBIGUOUS_COS = 0.5  # |normal . radial| below this: the outward side of a surface is unsure
 
 
@@ -384,7 +474,7 @@ def compute_deformation(
             shell_mask = np.asarray(shell, dtype=bool)
         notify(progress, "deformation", 0.1)
         ref_chainage = None
-        significant = lod95 = None
+        significant = lod95 = double = None
         if method == "knn":
             deformation, horizontal, vertical, dist = _knn_deformation(
                 ref, cmp, centerline, pp, k=k, workers=workers, progress=scaled(progress, 0.1, 0.85)
@@ -474,6 +564,23 @@ def compute_deformation(
                 nrm[take] = r2.normal[sub]
                 significant[take] = r2.significant[sub]
                 lod95[take] = r2.lod95[sub]
+            # a change that one epoch contradicts by showing both of its surfaces (a SLAM
+            # map's double wall): no value there, rather than a confident wrong one
+            typical = r.meta.get("typical_spread")
+            sigma = float(np.nanmax(typical)) if typical is not None else np.nan
+            double = two_surfaces(ref, cmp, np.isfinite(deformation) & significant,
+                                  deformation, nrm, sigma,
+                                  float(getattr(dcfg, "cylinder_radius", 0.2)))
+            if double.any():
+                logger.info(
+                    "%d compared points (chainage %.1f-%.1f m) show a change that one epoch "
+                    "contradicts with both surfaces (a SLAM map's double wall?): NaN",
+                    int(double.sum()), float(pp.chainage[double].min()),
+                    float(pp.chainage[double].max()))
+                deformation[double] = np.nan
+                significant[double] = False
+                lod95[double] = np.nan
+                no_value |= double
             _, lat_dir, ver_dir = centerline.frame_at(pp.chainage)
             # the displacement vector deformation * normal, split into the changes of
             # |lateral| and |vertical| (NaN where the estimator gave no value)
@@ -532,4 +639,5 @@ def compute_deformation(
         significant=significant,
         lod95=lod95,
         centerline_length=centerline.length,
+        two_surfaces=double,
     )

@@ -40,6 +40,9 @@ class DeformationResult:
         ``robust`` only: change beyond the 95 % level of detection, and that level (m).
     centerline_length : float or None
         Length of the reference centreline, metres.
+    two_surfaces : bool, optional
+        ``robust`` only: points whose change one epoch contradicts by showing both surfaces
+        (a SLAM map's double wall); their deformation is NaN.
     """
 
     deformation: np.ndarray
@@ -54,6 +57,7 @@ class DeformationResult:
     significant: np.ndarray | None = None
     lod95: np.ndarray | None = None
     centerline_length: float | None = None
+    two_surfaces: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.deformation.shape[0])
