@@ -548,7 +548,7 @@ def _sheet(z: float, n: int, rng: np.random.Generator, sigma: float = 0.005) -> 
     return np.column_stack([xy, z + rng.normal(0.0, sigma, n)])
 
 
-def test_a_change_one_epoch_shows_both_surfaces_of_is_not_vouched_for() -> None:
+def test_a_change_one_epoch_shows_both_surfaces_of_is_not_vouched_for(monkeypatch) -> None:
     """A SLAM map that scanned a wall twice, 8 cm apart, shows both surfaces; the shell
     classifier keeps the outer one and reads +80 mm where nothing moved. A change that one
     epoch contradicts by holding the other surface too is found (either epoch doubled); a
@@ -569,6 +569,15 @@ def test_a_change_one_epoch_shows_both_surfaces_of_is_not_vouched_for() -> None:
     cmp = np.vstack([other, one])
     test = np.r_[centre, np.zeros(3600, dtype=bool)]
     assert flagged(one, cmp, test, 0.08) > 0.99
+    # (a chunk of points at a time: the same answer)
+    import tunneldef.deformation.compute as compute
+
+    whole = two_surfaces(one, cmp, test, np.full(7200, 0.08), np.tile(up[0], (7200, 1)),
+                         0.005, 0.2)
+    monkeypatch.setattr(compute, "_TWO_SURFACE_CHUNK", 300)
+    np.testing.assert_array_equal(
+        two_surfaces(one, cmp, test, np.full(7200, 0.08), np.tile(up[0], (7200, 1)), 0.005,
+                     0.2), whole)
     # the reference doubled: its outer sheet kept, the compared single sheet reads -80 mm
     assert flagged(np.vstack([one, other]), _sheet(0.0, 3600, rng), centre, -0.08) > 0.99
     # a real change of 80 mm: one surface in each epoch

@@ -226,10 +226,28 @@ def two_surfaces(
     centres = cmp[test]
     origin = centres.min(axis=0)
     n = normal[test]
-    offsets = []
+    indexes = []
     for pts in (cmp, ref):
         near = pts[_near(pts, centres, reach)]
-        index = _RadiusIndex(near - origin, reach)
+        indexes.append((near, _RadiusIndex(near - origin, reach)))
+    # a chunk of points at a time: a survey-wide change (or a wrong registration, which its
+    # own check refuses) may make most points candidates, each with about a thousand
+    # neighbours at the handheld scanner's density
+    for a in range(0, len(test), _TWO_SURFACE_CHUNK):
+        part = slice(a, a + _TWO_SURFACE_CHUNK)
+        out[test[part]] = _both_surfaces(indexes, centres[part], origin, n[part], d[part],
+                                         w, radius, reach)
+    return out
+
+
+_TWO_SURFACE_CHUNK = 4_000
+
+
+def _both_surfaces(indexes, centres, origin, n, d, w, radius, reach) -> np.ndarray:
+    """:func:`two_surfaces` for one chunk of points (``indexes``: each epoch's points near
+    them and their radius index, compared first)."""
+    offsets = []
+    for near, index in indexes:
         group, idx, d2 = index.ball(centres - origin, reach)
         rel = (near[idx] - centres[group]).astype(np.float64)
         off = np.einsum("ij,ij->i", rel, n[group])
@@ -237,21 +255,20 @@ def two_surfaces(
         offsets.append((group[inside], off[inside]))
     # the compared surface's own offset from the (noisy) point: the mean of its points
     # nearer to it than to the reference surface
+    m = len(centres)
     g, off = offsets[0]
     mine = np.abs(off) < 0.5 * np.abs(d[g])
-    m0 = np.bincount(g[mine], weights=off[mine], minlength=len(test)) / np.maximum(
-        np.bincount(g[mine], minlength=len(test)), 1)
+    m0 = np.bincount(g[mine], weights=off[mine], minlength=m) / np.maximum(
+        np.bincount(g[mine], minlength=m), 1)
     counts = []
     for g, off in offsets:
         at_cmp = np.abs(off - m0[g]) <= w
         at_ref = np.abs(off - (m0[g] - d[g])) <= w
-        counts.append((np.bincount(g[at_cmp], minlength=len(test)),
-                       np.bincount(g[at_ref], minlength=len(test))))
+        counts.append((np.bincount(g[at_cmp], minlength=m), np.bincount(g[at_ref], minlength=m)))
     (c_here, c_there), (r_here, r_there) = counts
     both_cmp = c_there >= np.maximum(_TWO_SURFACE_MIN, _TWO_SURFACE_SHARE * c_here)
     both_ref = r_here >= np.maximum(_TWO_SURFACE_MIN, _TWO_SURFACE_SHARE * r_there)
-    out[test] = both_cmp | both_ref
-    return out
+    return both_cmp | both_ref
 
 
 _AMBIGUOUS_COS = 0.5  # |normal . radial| below this: the outward side of a surface is unsure
