@@ -376,3 +376,49 @@ def test_level_of_detection_on_the_demo_flags_the_changes_and_not_the_shell() ->
     changed = ok & (moved > 0.01)
     assert changed.sum() > 500
     assert np.mean(f["significant"][changed] > 0) > 0.8
+    # both epochs see every surface alike: no stretch reads thicker in one of them
+    thick = {c.name: c for c in res.quality.checks if "spread" in c.name or "thick" in c.name}
+    assert set(thick) == {"deformation.thick_surface", "deformation.epoch_spread"}
+    assert all(c.passed for c in thick.values()), thick
+    assert thick["deformation.thick_surface"].figure < 1.12
+    assert thick["deformation.epoch_spread"].figure < 1.1
+
+
+def test_thick_spans_find_a_surface_one_epoch_holds_thicker() -> None:
+    from tunneldef.quality import thick_spans
+
+    rng = np.random.default_rng(3)
+    n = 200_000
+    chainage = rng.uniform(0.0, 40.0, n)
+    surface = rng.integers(0, 4, n).astype(np.uint8)
+    # each point's ratio scatters about 1 like sample spreads of ~50 points per cylinder
+    ratio = np.exp(rng.normal(0.0, 0.14, n))
+    worst, spans, survey = thick_spans(ratio, chainage, surface, 1.3)
+    assert spans == [] and survey == pytest.approx(1.0, abs=0.01)
+    assert worst < 1.1  # 1 m bins of ~1,250 points: medians within a few per cent
+    # one epoch noisier throughout is no stretch (its own check reads the typical spreads)
+    worst, spans, survey = thick_spans(1.5 * ratio, chainage, surface, 1.3)
+    assert spans == [] and worst < 1.1 and survey == pytest.approx(1.5, rel=0.01)
+    # the compared left wall 1.45 times as thick over 18-28 m (a wall held twice 3 cm apart
+    # at +-1.5 cm noise), the reference roof 1.5 times over 5-9 m
+    wall = (surface == 1) & (chainage >= 18.0) & (chainage < 28.0)
+    roof = (surface == 0) & (chainage >= 5.0) & (chainage < 9.0)
+    r = ratio.copy()
+    r[wall] *= 1.45
+    r[roof] /= 1.5
+    r[rng.random(n) < 0.02] = np.nan  # points without a measured value
+    worst, spans, _ = thick_spans(r, chainage, surface, 1.3)
+    assert sorted((s, a, b) for s, a, b, _ in spans) == [(0, 5.0, 9.0), (1, 18.0, 28.0)]
+    ratios = {s: q for s, _, _, q in spans}
+    assert ratios[1] == pytest.approx(1.45, rel=0.05)
+    assert ratios[0] == pytest.approx(1 / 1.5, rel=0.05)
+    assert worst == pytest.approx(1.5, rel=0.08)
+    # one thick metre alone is no stretch; nor is a thin bin beside a thick one
+    one = (surface == 2) & (chainage >= 30.0) & (chainage < 31.0)
+    r2 = ratio.copy()
+    r2[one] *= 2.0
+    r2[(surface == 2) & (chainage >= 31.0) & (chainage < 32.0)] /= 2.0
+    worst, spans, _ = thick_spans(r2, chainage, surface, 1.3)
+    assert spans == [] and worst < 1.1
+    # too few measured points: no figure
+    assert np.isnan(thick_spans(ratio[:60], chainage[:60], surface[:60], 1.3)[0])

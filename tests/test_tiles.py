@@ -89,6 +89,10 @@ def test_tiles_equal_untiled(registered, method: str, tile_length: float, monkey
                               registration_sigma=sigma)
     assert len(loaded) == (4 if (method, tile_length) == ("robust", 25.0) else 0)
     assert_fields_equal(tiled.fields(), whole.fields())
+    if method == "robust":  # what the quality checks read besides the fields
+        np.testing.assert_array_equal(tiled.spread_ratio, whole.spread_ratio)
+        np.testing.assert_array_equal(tiled.two_surfaces, whole.two_surfaces)
+        assert tiled.typical_spread == pytest.approx(whole.typical_spread, rel=1e-9)
     danger_t, zones_t = _zones(tiled)
     danger_w, zones_w = _zones(whole)
     if method == "robust":

@@ -37,6 +37,7 @@ __all__ = [
     "rigid_convergence_check",
     "registration_checks",
     "deformation_checks",
+    "thick_spans",
     "edge_checks",
     "network_registration_checks",
     "edge_difference_checks",
@@ -423,6 +424,136 @@ def deformation_checks(deformation: Any, qc: QualityConfig) -> list[Check]:
             "share of the measured shell whose change one epoch contradicts by showing both "
             "surfaces")
         checks.append(dataclasses.replace(check, advisory=True))
+    ratio = getattr(deformation, "spread_ratio", None)
+    if ratio is not None:
+        checks += _thick_surface_checks(deformation, np.asarray(ratio), qc)
+    return checks
+
+
+_THICK_BIN = 1.0  # m of chainage per bin of :func:`thick_spans`
+_THICK_MIN_POINTS = 50  # measured shell points a bin needs to count
+_THICK_SAMPLE = 2_000_000  # at most this many points (a stride) make the bins' medians
+
+
+def thick_spans(ratio: np.ndarray, chainage: np.ndarray, surface: np.ndarray,
+                limit: float) -> tuple[float, list[tuple[int, float, float, float]], float]:
+    """Stretches of a surface where one epoch's surface is thicker than the other's, beyond
+    what the two epochs' spreads are elsewhere in the survey.
+
+    Parameters
+    ----------
+    ratio : ndarray, shape (N,)
+        Compared cylinder spread over reference cylinder spread per point (NaN where not
+        measured; :attr:`~tunneldef.deformation.DeformationResult.spread_ratio`).
+    chainage, surface : ndarray, shape (N,)
+        Chainage (m) and surface label (0-3) of each point.
+    limit : float
+        Ratio (either way, > 1) against the survey's median ratio beyond which a 1 m bin of
+        one surface is thick.
+
+    Returns
+    -------
+    worst : float
+        The largest ratio against the survey's median, folded to >= 1, that two neighbouring
+        bins of one surface both reach (NaN without two such bins).
+    spans : list of (surface, start, end, ratio)
+        Runs of at least two neighbouring bins of one surface beyond ``limit`` (chainage in
+        metres; ``ratio`` their median ratio, > 1 where the compared epoch is thicker).
+    median : float
+        The survey's median ratio (NaN with too few measured points).
+    """
+    limit = max(float(limit), 1.0)
+    ok = np.flatnonzero(np.isfinite(ratio) & (ratio > 0))
+    if len(ok) > _THICK_SAMPLE:
+        ok = ok[:: -(-len(ok) // _THICK_SAMPLE)]
+    if len(ok) < 2 * _THICK_MIN_POINTS:
+        return np.nan, [], np.nan
+    lr = np.log(ratio[ok].astype(np.float64))
+    survey = float(np.median(lr))
+    b = np.floor(chainage[ok] / _THICK_BIN).astype(np.int64)
+    b0 = int(b.min())
+    b -= b0
+    nb = int(b.max()) + 2  # one empty bin between surfaces: no run crosses from one to the next
+    key = surface[ok].astype(np.int64) * nb + b
+    order = np.lexsort((lr, key))
+    key, lr = key[order], lr[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, len(key)])
+    full = counts >= _THICK_MIN_POINTS
+    starts, counts = starts[full], counts[full]
+    if len(starts) < 2:
+        return np.nan, [], float(np.exp(survey))
+    keys = key[starts]
+    med = 0.5 * (lr[starts + (counts - 1) // 2] + lr[starts + counts // 2])
+    rel = med - survey
+    folded = np.abs(rel)
+    pair = (keys[1:] == keys[:-1] + 1) & (np.sign(rel[1:]) == np.sign(rel[:-1]))
+    both = np.minimum(folded[1:], folded[:-1])[pair]
+    worst = float(np.exp(both.max())) if len(both) else np.nan
+    hit = folded > np.log(limit)
+    spans = []
+    i = 0
+    while i < len(keys):  # runs over bins (a few thousand per kilometre), not points
+        if not hit[i]:
+            i += 1
+            continue
+        j = i
+        while (j + 1 < len(keys) and hit[j + 1] and keys[j + 1] == keys[j] + 1
+               and np.sign(rel[j + 1]) == np.sign(rel[i])):
+            j += 1
+        if j > i:
+            start = (b0 + keys[i] % nb) * _THICK_BIN
+            spans.append((int(keys[i] // nb), start, start + (j - i + 1) * _THICK_BIN,
+                          float(np.exp(np.median(med[i:j + 1])))))
+        i = j + 1
+    return worst, spans, float(np.exp(survey))
+
+
+def _thick_surface_checks(deformation: Any, ratio: np.ndarray, qc: QualityConfig) -> list[Check]:
+    """Advisory: a stretch of a surface one epoch sees thicker than the other (a SLAM map
+    that holds it twice closer than the noise separates, or a noisier scan there), and one
+    epoch's surfaces thicker throughout."""
+    from .deformation.sections import SURFACE_NAMES
+
+    worst, spans, survey = thick_spans(ratio, np.asarray(deformation.chainage),
+                                       np.asarray(deformation.surface), qc.max_spread_ratio)
+    typical = getattr(deformation, "typical_spread", None)
+    where = ""
+    if spans:
+        s, a, b, r = max(spans, key=lambda sp: abs(np.log(sp[3] / survey)) * (sp[2] - sp[1]))
+        epoch, other = ("compared", "reference") if r > survey else ("reference", "compared")
+        folded = max(r / survey, survey / r)
+        extra = ""
+        if typical is not None:
+            t = float(typical[0] if r > survey else typical[1])
+            extra = (f"; values there can be off by up to about "
+                     f"{1e3 * t * np.sqrt(folded**2 - 1):.0f} mm, more than their LoD95 says")
+        more = ""
+        if len(spans) > 1:
+            more = f" ({len(spans) - 1} more stretch{'es' if len(spans) > 2 else ''} besides)"
+        where = (f": the {epoch} epoch's {SURFACE_NAMES[s].replace('_', ' ')} at chainage "
+                 f"{a:.0f}-{b:.0f} m is {max(r, 1 / r):.2f} times as thick as the {other}'s "
+                 f"(over the whole survey {max(survey, 1 / survey):.2f}){more}{extra}")
+    local = _check(
+        "deformation.thick_surface", worst, qc.max_spread_ratio, "<=", "",
+        f"one epoch sees a stretch of a surface thicker than the other{where}: a map that "
+        "holds it twice a few centimetres apart (a SLAM pass that did not close onto the "
+        "other) or a noisier scan there; look at both epochs' points across that surface",
+        "largest ratio of the epochs' surface spreads (either way) over 2 m of one surface, "
+        "against the survey's")
+    checks = [dataclasses.replace(local, advisory=True)]
+    if typical is not None and all(np.isfinite(t) and t > 0 for t in typical):
+        g = float(typical[1]) / float(typical[0])
+        thick, thin = ("compared", "reference") if g > 1 else ("reference", "compared")
+        whole = _check(
+            "deformation.epoch_spread", max(g, 1 / g), qc.max_spread_ratio, "<=", "",
+            f"the {thick} epoch's surfaces are {max(g, 1 / g):.2f} times as thick as the "
+            f"{thin}'s throughout ({1e3 * max(typical):.1f} against "
+            f"{1e3 * min(typical):.1f} mm): a noisier scan, which the LoD95 takes in, or a "
+            "map that holds every surface twice (a SLAM map whose passes did not close onto "
+            "each other), which it does not; look at that epoch's points across a wall",
+            "the epochs' typical surface spreads, the larger over the smaller")
+        checks.append(dataclasses.replace(whole, advisory=True))
     return checks
 
 

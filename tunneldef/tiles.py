@@ -258,6 +258,8 @@ def _measure_task(
         fields["lod95"] = d.lod95
     if d.two_surfaces is not None:
         fields["two_surfaces"] = d.two_surfaces
+    if d.spread_ratio is not None:
+        fields["spread_ratio"] = d.spread_ratio
     for name, a in fields.items():
         _save(folder, f"out_{name}", np.asarray(a)[cmp_owned])
     return folder
@@ -372,18 +374,20 @@ def tiled_deformation(
         engine.map(_measure_task,
                    [(str(tmp), t.folder, coverage, inputs, registration_sigma) for t in tiles],
                    stage="tiles: deformation", progress=progress)
-        return _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings)
+        return _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings,
+                      None if inputs is None else inputs.get("typical_spread"))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings) -> DeformationResult:
+def _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings,
+           typical_spread=None) -> DeformationResult:
     """The owned points' fields of every tile, in the compared epoch's order (float fields as
-    float32)."""
+    float32, the float16 spread ratio as it is)."""
     n = len(cmp_xyz)
     names = ["deformation", "horizontal", "vertical", "shell"]
     if settings.method == "robust":
-        names += ["significant", "lod95", "two_surfaces"]
+        names += ["significant", "lod95", "two_surfaces", "spread_ratio"]
     out: dict[str, np.ndarray] = {}
     seen = np.zeros(n, dtype=bool)
     for t in tiles:
@@ -393,7 +397,8 @@ def _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings) -> DeformationR
         for name in names:
             a = _load(t.folder, f"out_{name}")[0]
             if name not in out:
-                out[name] = np.empty(n, dtype=np.float32 if a.dtype.kind == "f" else a.dtype)
+                kind = np.float32 if a.dtype.kind == "f" and a.dtype.itemsize > 2 else a.dtype
+                out[name] = np.empty(n, dtype=kind)
             out[name][index] = a
     if not seen.all():  # every point lies in exactly one owned interval
         raise RuntimeError(f"{int((~seen).sum())} compared points in no tile")
@@ -403,4 +408,5 @@ def _merge(tiles, cmp_xyz, cmp_s, surface, centerline, settings) -> DeformationR
         method=settings.method, k=settings.k if settings.method == "knn" else None,
         significant=out.get("significant"), lod95=out.get("lod95"),
         centerline_length=centerline.length, two_surfaces=out.get("two_surfaces"),
+        spread_ratio=out.get("spread_ratio"), typical_spread=typical_spread,
     )

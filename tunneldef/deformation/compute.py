@@ -30,7 +30,7 @@ from .result import DeformationResult
 from .sections import surface_labels
 
 if TYPE_CHECKING:
-    from .local_surface import CylinderPass
+    from .local_surface import CylinderPass, RobustDeformation
 
 __all__ = ["compute_deformation", "common_masks", "global_inputs", "METHODS"]
 
@@ -241,6 +241,27 @@ def two_surfaces(
 
 
 _TWO_SURFACE_CHUNK = 4_000
+
+
+def _spread_ratio(r: RobustDeformation, shell: np.ndarray) -> np.ndarray:
+    """Per compared point of the measured shell, its compared cylinder's spread over its
+    reference cylinder's (float16, a ratio needs no more and a kilometre's survey holds 55 M
+    of them; NaN elsewhere).
+
+    A map that holds a surface twice closer than the noise can separate (a SLAM pass 2-4 cm
+    off the other) shows no second surface, only a thicker one: at +-1.5 cm noise a wall
+    held twice 3 cm apart reads a spread 1.2-1.35 times the other epoch's, and its values there
+    drift by up to half the offset with a LoD95 that widens only where a cylinder passes
+    the roughness gate. The ratio is about 1 wherever both epochs see one surface alike (it
+    is not taken over the typical spreads: a map held twice throughout would raise those)."""
+    out = np.full(len(shell), np.nan, dtype=np.float16)
+    sr = np.asarray(r.sigma_ref, dtype=np.float64)
+    sc = np.asarray(r.sigma_cmp, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = sc / sr
+    use = shell & np.isfinite(np.asarray(r.deformation)) & np.isfinite(ratio) & (sr > 0)
+    out[use] = ratio[use]
+    return out
 
 
 def _both_surfaces(indexes, centres, origin, n, d, w, radius, reach) -> np.ndarray:
@@ -491,7 +512,7 @@ def compute_deformation(
             shell_mask = np.asarray(shell, dtype=bool)
         notify(progress, "deformation", 0.1)
         ref_chainage = None
-        significant = lod95 = double = None
+        significant = lod95 = double = spread_ratio = typical_spread = None
         if method == "knn":
             deformation, horizontal, vertical, dist = _knn_deformation(
                 ref, cmp, centerline, pp, k=k, workers=workers, progress=scaled(progress, 0.1, 0.85)
@@ -537,6 +558,8 @@ def compute_deformation(
             nrm = np.asarray(r.normal, dtype=np.float64)
             significant = np.asarray(r.significant, dtype=bool)
             lod95 = np.asarray(r.lod95, dtype=np.float64)
+            spread_ratio = _spread_ratio(r, shell_mask)
+            typical_spread = r.meta.get("typical_spread")
             rest = ~shell_mask
             take = np.zeros_like(rest)
             no_value = np.zeros_like(rest)
@@ -657,4 +680,6 @@ def compute_deformation(
         lod95=lod95,
         centerline_length=centerline.length,
         two_surfaces=double,
+        spread_ratio=spread_ratio,
+        typical_spread=typical_spread,
     )

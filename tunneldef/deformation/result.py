@@ -43,6 +43,14 @@ class DeformationResult:
     two_surfaces : bool, optional
         ``robust`` only: points whose change one epoch contradicts by showing both surfaces
         (a SLAM map's double wall); their deformation is NaN.
+    spread_ratio : float16, optional
+        ``robust`` only: on the measured shell, the spread of the compared epoch's cylinder
+        over the reference's, each over its survey-wide typical spread (about 1 where both
+        epochs see one surface alike; NaN elsewhere). Not written; the quality check
+        ``deformation.thick_surface`` reads it.
+    typical_spread : (float, float), optional
+        ``robust`` only: the survey's typical cylinder spread of the reference and the
+        compared epoch, metres.
     """
 
     deformation: np.ndarray
@@ -58,6 +66,8 @@ class DeformationResult:
     lod95: np.ndarray | None = None
     centerline_length: float | None = None
     two_surfaces: np.ndarray | None = None
+    spread_ratio: np.ndarray | None = None
+    typical_spread: tuple[float, float] | None = None
 
     def __len__(self) -> int:
         return int(self.deformation.shape[0])
