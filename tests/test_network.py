@@ -735,3 +735,44 @@ def test_a_drift_going_on_as_a_narrower_ramp_is_cut_at_its_change_of_section() -
 
     one = make_pair(PairSpec(TunnelSpec(length=60.0, chamber=True, density=150.0), seed=3))
     assert len(extract_network(one.ref.xyz).network.edges) == 1
+
+
+def test_a_gappy_edge_with_centres_off_its_line_keeps_the_line_most_lie_on() -> None:
+    """Sweep case 57000010: an edge crossed by another drift had 10 usable centres, 3 at one
+    end scattered by 0.5-2 m and 7 on a line 15 m on; a cubic through them was 554.8 m long
+    and the whole network was refused. The skeleton's axis ran 9 degrees off the 7, so the
+    edge now keeps the straight line that most of its centres lie on; with no such line, the
+    implausible curve is refused as before."""
+    from tunneldef.centerline.extract import SliceRecord
+    from tunneldef.centerline.network import _fit_edge, _on_line
+    from tunneldef.config import CenterlineConfig
+    from tunneldef.curve import Centerline
+
+    centres = np.array([
+        [-0.302, -0.027, 0.251], [-1.712, -1.336, 0.252], [-0.207, -2.173, 0.22],
+        [10.21, -10.609, -0.006], [10.587, -10.946, -0.018], [10.976, -11.275, -0.021],
+        [11.356, -11.61, -0.036], [11.741, -11.942, -0.045], [12.123, -12.275, -0.053],
+        [12.494, -12.619, -0.06]])
+    stations = [-0.796, 0.204, 1.204, 16.204, 16.704, 17.204, 17.704, 18.204, 18.704, 19.204]
+    way = (centres[-1] - centres[3]) / np.linalg.norm(centres[-1] - centres[3])
+    turn = np.radians(9.0)
+    skew = np.array([way[0] * np.cos(turn) - way[1] * np.sin(turn),
+                     way[0] * np.sin(turn) + way[1] * np.cos(turn), 0.0])
+    axis = Centerline.from_polyline(centres[3] - 17.0 * way + np.linspace(0.0, 20.0, 60)[:, None]
+                                    * skew)
+
+    def records(xyz: np.ndarray) -> list:
+        out = [SliceRecord(station=float(s), centre=c, ok=True)
+               for s, c in zip(stations, xyz, strict=True)]
+        return out + [SliceRecord(station=float(s), reason="junction") for s in range(2, 16)]
+
+    curve = _fit_edge(records(centres), CenterlineConfig(), "edge 1", axis)
+    assert curve.meta["method"] == "line" and curve.meta["n_on_line"] == 7
+    assert not curve.meta.get("short_branch")  # so the scatter check applies (and fails)
+    assert curve.length == pytest.approx(20.0, abs=0.3)
+    dist = curve.project(centres).distance
+    assert dist[3:].max() < 0.02 and dist[:3].min() > 0.4
+    # centres on no common line: none (and the implausible curve is refused, as before)
+    rng = np.random.default_rng(0)
+    scattered = centres + rng.normal(0.0, 0.3, centres.shape)
+    assert _on_line(records(scattered)[:10], 24, CenterlineConfig()) is None

@@ -531,6 +531,43 @@ def _on_axis(ok: list[SliceRecord], n_records: int, c: CenterlineConfig, axis: C
     return cl
 
 
+#: a straight line stands for centres too gappy for a curve of their own only where most of
+#: them lie within this of it, m (a tunnel section's centre scatters by 1-2 cm)
+SPARSE_LINE_TOLERANCE = 0.1
+
+
+def _on_line(ok: list[SliceRecord], n_records: int, c: CenterlineConfig) -> Centerline | None:
+    """The straight line, in station, that most of the used centres lie on (within
+    :data:`SPARSE_LINE_TOLERANCE`), least-squares through those, over the stations they
+    span; None when no line holds more than half of them. Every pair of centres proposes a
+    line (a few dozen centres: exhaustive, no random draws)."""
+    st = np.array([r.station for r in ok])
+    xyz = np.array([r.centre for r in ok])
+    i, j = np.triu_indices(len(ok), k=1)
+    dt = st[j] - st[i]
+    good = np.abs(dt) > 1e-6
+    i, j, dt = i[good], j[good], dt[good]
+    if len(i) == 0:
+        return None
+    slope = (xyz[j] - xyz[i]) / dt[:, None]
+    pred = xyz[i][:, None, :] + slope[:, None, :] * (st[None, :] - st[i][:, None])[..., None]
+    near = np.linalg.norm(pred - xyz[None], axis=2) <= SPARSE_LINE_TOLERANCE
+    best = int(np.argmax(near.sum(axis=1)))
+    inl = near[best]
+    if inl.sum() <= len(ok) // 2 or np.ptp(st[inl]) <= 0:
+        return None
+    a = np.vstack([np.ones(int(inl.sum())), st[inl]]).T
+    coef, *_ = np.linalg.lstsq(a, xyz[inl], rcond=None)
+    s = np.arange(st.min(), st.max() + c.sample_step / 2, c.sample_step)
+    cl = Centerline.from_polyline(coef[0] + s[:, None] * coef[1], step=c.sample_step,
+                                  centres=xyz)
+    cl.meta.update({"method": "line", "n_slices": n_records, "n_used": len(ok),
+                    "n_on_line": int(inl.sum()), "sparse_centres": True})
+    for r, w in zip(ok, inl, strict=True):
+        r.weight = float(w)
+    return cl
+
+
 def _fit_edge(
     records: list[SliceRecord], c: CenterlineConfig, name: str, axis: Centerline
 ) -> Centerline:
@@ -563,12 +600,20 @@ def _fit_edge(
             meta={"n_slices": len(records), "n_used": len(ok)},
         )
     except ImplausibleExtentError:
-        if len(ok) >= 2 * least:
-            raise
         # a handful of centres in two clusters either side of a long junction zone (an
         # oblique crossing: 2 and 3 centres 15 m apart) swing a cubic through them 2.5 times
         # the length of the centres' path; the axis through them is the edge's curve, and its
-        # centres' scatter about it is still checked
+        # centres' scatter about it is still checked. With more centres (sweep case 57000010:
+        # 3 scattered by 0.5-1 m at the far side of a crossing, 7 on a line 15 m on: a cubic
+        # 555 m long) the axis stands only where it runs through most of them
+        # the line most of them lie on (the skeleton's axis ran 9 degrees off it there)
+        if len(ok) >= 2 * least:
+            line = _on_line(ok, len(records), c)
+            if line is None:
+                raise
+            logger.info("%s: %d centres too gappy for a curve; the line through most of them",
+                        name, len(ok))
+            return line
         logger.info("%s: %d centres too few and gappy for a curve; the axis moved onto them",
                     name, len(ok))
         return _on_axis(ok, len(records), c, axis, sparse_centres=True)
