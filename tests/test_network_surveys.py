@@ -98,6 +98,34 @@ def test_a_stub_whose_sections_cannot_be_read_is_left_out(stub_pair, monkeypatch
     assert net.edges[0].zones  # the main drift keeps its zone at the mouth
 
 
+def test_the_compared_network_leaves_out_any_edge_it_cannot_read(stub_pair, monkeypatch) -> None:
+    """Sweep case 58000002: the later walker saw a crossing cross-cut a few metres into
+    either side, and that edge, one other drifts cross, refused the whole survey. The
+    compared epoch's edges only place it on the reference's (the registration is checked on
+    its own), so there any unreadable edge is left out; the reference's carries its
+    network; and a network none of whose edges can be read is refused."""
+    import tunneldef.centerline.network as cn
+    from tunneldef.errors import NetworkError
+
+    fit = cn._fit_edge
+    cut = {"at": 30.0}
+
+    def fail_long(records, c, name, axis):  # noqa: ANN001, ANN202
+        if axis.length > cut["at"]:
+            raise NetworkError(f"{name}: only 1 of 32 slices show a tunnel section")
+        return fit(records, c, name, axis)
+
+    monkeypatch.setattr(cn, "_fit_edge", fail_long)
+    with pytest.raises(NetworkError, match="only 1 of 32"):
+        extract_network(stub_pair.cmp.xyz)
+    net = extract_network(stub_pair.cmp.xyz, leave_out_any=True).network
+    assert len(net.edges) >= 1 and all(e.length < 30.0 for e in net.edges)
+    assert any(left["length_m"] > 30.0 for left in net.meta["left_out"])
+    cut["at"] = 0.0
+    with pytest.raises(NetworkError, match="no edge of the network can be read"):
+        extract_network(stub_pair.cmp.xyz, leave_out_any=True)
+
+
 def test_a_short_dead_end_that_fails_its_checks_is_left_out(stub_pair) -> None:
     """In detect, a dead end up to ``[network] max_left_out_length`` that fails its own
     checks is left out with the check's figure as the reason; any other edge's failure is

@@ -422,3 +422,17 @@ def test_thick_spans_find_a_surface_one_epoch_holds_thicker() -> None:
     assert spans == [] and worst < 1.1
     # too few measured points: no figure
     assert np.isnan(thick_spans(ratio[:60], chainage[:60], surface[:60], 1.3)[0])
+    # the checks: the stretch names its surface and span; one epoch thicker throughout has
+    # its own check, read from the points' ratios (not the epochs' typical spreads)
+    from types import SimpleNamespace
+
+    from tunneldef.quality import _thick_surface_checks
+
+    d = SimpleNamespace(chainage=chainage, surface=surface, typical_spread=(0.015, 0.03))
+    local, whole = _thick_surface_checks(d, r, QualityConfig())
+    assert not local.passed and local.advisory and "left wall at chainage 18-28 m" in \
+        local.reason() and "1 more stretch besides" in local.reason()
+    assert whole.passed and whole.figure < 1.05
+    local, whole = _thick_surface_checks(d, 1.5 * ratio, QualityConfig())
+    assert local.passed and not whole.passed and whole.advisory
+    assert whole.figure == pytest.approx(1.5, rel=0.02) and "compared epoch's" in whole.reason()

@@ -821,7 +821,8 @@ def detect_network(
     _check_edges(ref_net, report, config, "reference")
     report.add([upright_check(ref_net, config.quality)])
     with epoch_named("compared"):
-        cmp_net = extract_network(cmp.xyz, **lines, progress=under(progress, "compared network"))
+        cmp_net = extract_network(cmp.xyz, **lines, progress=under(progress, "compared network"),
+                                  leave_out_any=True)
     _check_edges(cmp_net, report, config, "compared")
     _check_section_sizes(ref_net, cmp_net)
     timings["centrelines"] = time.perf_counter() - t0

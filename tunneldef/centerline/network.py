@@ -855,6 +855,7 @@ def extract_network(
     settings: CenterlineConfig | None = None,
     network: NetworkConfig | None = None,
     progress: ProgressCallback | None = None,
+    leave_out_any: bool = False,
 ) -> NetworkResult:
     """The centreline network of a drift-network point cloud.
 
@@ -868,6 +869,13 @@ def extract_network(
         The ``[network]`` parameters (plan grid, spurs, junctions).
     progress : ProgressCallback, optional
         Called with ("network centrelines", fraction).
+    leave_out_any : bool
+        Leave out any edge whose sections cannot be read, not only a dead end (the compared
+        epoch's network, whose edges only place it on the reference's: a cross-cut that
+        walker saw a few metres into either side of a crossing is no edge to refuse the
+        survey over; the registration is checked on its own). Otherwise an edge between
+        junctions, or one other drifts cross, carries the network, and one that cannot be
+        read stops the run.
 
     Returns
     -------
@@ -964,7 +972,7 @@ def extract_network(
                                  e.corners), [node_xyz[v] for v in at[k]] + _corner_points(e),
                                  sl, c, names[k], quick=True)[0])
         except (NetworkError, NotATunnelError) as exc:
-            _leave_out(failed, k, e, members, names[k], exc)
+            _leave_out(failed, k, e, members, names[k], exc, leave_out_any)
             first.append(e.axis)
     _place_nodes(edges, first, members, node_xyz, skip=failed, corners=corner_nodes)
     zones = _zones(edges, node_xyz, first, members, nc.zone_margin)
@@ -979,8 +987,10 @@ def extract_network(
                                              sl, c, names[k])
                 continue
             except (NetworkError, NotATunnelError) as exc:
-                _leave_out(failed, k, e, members, names[k], exc)
+                _leave_out(failed, k, e, members, names[k], exc, leave_out_any)
         e.curve, e.records = first[k], []
+    if len(failed) == len(edges):
+        raise NetworkError(f"no edge of the network can be read: {next(iter(failed.values()))}")
     _place_nodes(edges, [e.curve for e in edges], members, node_xyz, skip=failed,
                  corners=corner_nodes)
     # extend edges that end at a junction to its node
@@ -1036,13 +1046,13 @@ def extract_network(
 
 
 def _leave_out(failed: dict[int, str], k: int, e: _Edge, members: dict[int, list[int]],
-               name: str, exc: Exception) -> None:
+               name: str, exc: Exception, any_edge: bool = False) -> None:
     """Record that edge ``k`` is left out because its passes failed (``exc``), or raise a
     :class:`NetworkError` when it is no branch off the network: only a dead end that leaves
     one junction (and passes through none) can be dropped; an edge between junctions, or one
-    that other drifts cross, carries the network."""
+    that other drifts cross, carries the network (``any_edge``: every edge can be dropped)."""
     ends = [v in members for v in e.nodes[:2]]
-    if sum(ends) != 1 or e.through:
+    if not any_edge and (sum(ends) != 1 or e.through):
         raise NetworkError(str(exc)) from exc
     reason = str(exc).split("; raise")[0]
     logger.warning("network: %s left out, its sections cannot be read: %s", name, reason)
