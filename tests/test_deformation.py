@@ -588,18 +588,14 @@ def test_a_change_one_epoch_shows_both_surfaces_of_is_not_vouched_for(monkeypatc
                         np.full(7200, 0.012), np.tile(up[0], (7200, 1)), 0.005, 0.2).sum() == 0
 
 
-@pytest.mark.slow
-def test_detect_gives_no_value_where_a_slam_map_holds_a_wall_twice() -> None:
-    """A stretch of the compared map scanned twice, the second pass 8 cm to the side (a
-    SLAM pass that did not close onto the first): before the two-surface test the left wall
-    read +74 mm there with a LoD95 of 8 mm and raised a danger zone 10 m long. Now those
-    points have no value, the run warns naming the stretch, and the real sag elsewhere
-    still reads at its size."""
+def _held_twice(offset: float, a: float, b: float):  # noqa: ANN202
+    """A 30 m pair (300 points/m2, +-1.5 cm, pipes, a chamber, a 30 mm sag at 25 m) whose
+    compared map holds chainage ``a``-``b`` twice, the copy ``offset`` m to the side; the
+    pair, the truth in the compared order with the copy appended, and ``detect``'s result."""
     from tunneldef.cloud import Cloud
     from tunneldef.pipeline import detect
     from tunneldef.transforms import apply_transform
 
-    a, b = 12.0, 20.0
     pair = make_pair(tunnel=TunnelSpec(length=30.0, density=300.0, equipment=True,
                                        section=SectionSpec("rectangle", 5.0, 3.2),
                                        chamber=True, chamber_chainage=4.0, noise_sigma=0.015),
@@ -607,10 +603,23 @@ def test_detect_gives_no_value_where_a_slam_map_holds_a_wall_twice() -> None:
     tr = pair.truth
     x = tr.cmp_xyz_in_ref
     twice = (x[:, 0] > a) & (x[:, 0] < b)
-    ghost = x[twice] + np.array([0.0, 0.08, 0.0])
+    ghost = x[twice] + np.array([0.0, offset, 0.0])
     cmp = Cloud(np.vstack([pair.cmp.xyz, apply_transform(np.linalg.inv(tr.transform), ghost)]),
                 {})
-    result = detect(pair.ref, cmp)
+    return pair, twice, ghost, detect(pair.ref, cmp)
+
+
+@pytest.mark.slow
+def test_detect_gives_no_value_where_a_slam_map_holds_a_wall_twice() -> None:
+    """A stretch of the compared map scanned twice, the second pass 8 cm to the side (a
+    SLAM pass that did not close onto the first): before the two-surface test the left wall
+    read +74 mm there with a LoD95 of 8 mm and raised a danger zone 10 m long. Now those
+    points have no value, the run warns naming the stretch, and the real sag elsewhere
+    still reads at its size."""
+    a, b = 12.0, 20.0
+    pair, twice, ghost, result = _held_twice(0.08, a, b)
+    tr = pair.truth
+    x = tr.cmp_xyz_in_ref
     assert result.zones == []
     warned = [c for c in result.quality.warnings if c.name == "deformation.two_surfaces"]
     assert len(warned) == 1 and f"{a:.0f}." in warned[0].reason()
@@ -634,29 +643,15 @@ def test_detect_warns_where_a_slam_map_holds_a_wall_twice_closer_than_the_noise(
     close for a second surface to show (the two-surface test needs 3 sigmas), so the values
     there drift by millimetres to a centimetre with a LoD95 that widens only in part. The
     walls read thicker there than in the reference, and the run says where."""
-    from tunneldef.cloud import Cloud
-    from tunneldef.pipeline import detect
-    from tunneldef.transforms import apply_transform
+    from tunneldef.quality import thick_spans
 
     a, b = 12.0, 20.0
-    pair = make_pair(tunnel=TunnelSpec(length=30.0, density=300.0, equipment=True,
-                                       section=SectionSpec("rectangle", 5.0, 3.2),
-                                       chamber=True, chamber_chainage=4.0, noise_sigma=0.015),
-                     deformations=(DeformationSpec("roof_sag", 25.0, 3.0, 1.5, 0.03),), seed=0)
-    tr = pair.truth
-    x = tr.cmp_xyz_in_ref
-    twice = (x[:, 0] > a) & (x[:, 0] < b)
-    ghost = x[twice] + np.array([0.0, 0.03, 0.0])
-    cmp = Cloud(np.vstack([pair.cmp.xyz, apply_transform(np.linalg.inv(tr.transform), ghost)]),
-                {})
-    result = detect(pair.ref, cmp)
+    _, _, _, result = _held_twice(0.03, a, b)
     assert result.quality.verified  # advisory: the rest of the survey stands
     warned = [c for c in result.quality.warnings if c.name == "deformation.thick_surface"]
     assert len(warned) == 1, [c.name for c in result.quality.warnings]
     assert "compared epoch's" in warned[0].reason() and "wall" in warned[0].reason()
     assert 1.2 < warned[0].figure < 1.6
-    from tunneldef.quality import thick_spans
-
     d = result.deformation
     _, spans, survey = thick_spans(d.spread_ratio, d.chainage, d.surface, 1.2)
     assert survey == pytest.approx(1.0, abs=0.05)
