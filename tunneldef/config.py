@@ -394,10 +394,10 @@ class QualityConfig:
                                              "map's double wall) before a warning; one in a "
                                              "thousand is about a square metre of a 60 m drift")
     max_spread_ratio: float = _p(1.2, "ours: ratio of the epochs' surface spreads (either way) "
-                                      "that 2 m of one surface may reach, against the "
+                                      "that 3 m of one surface may reach, against the "
                                       "survey's, or the whole survey, before a warning; a wall "
                                       "held twice 3 cm apart at +-1.5 cm noise reads 1.2-1.35, "
-                                      "surveyor's pairs without it 1.03-1.07")
+                                      "surveyor's pairs without it 1.01-1.05")
 
 
 @dataclass(frozen=True)
