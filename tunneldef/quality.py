@@ -541,8 +541,9 @@ def _thick_surface_checks(deformation: Any, ratio: np.ndarray, qc: QualityConfig
         if len(spans) > 1:
             more = f" ({len(spans) - 1} more stretch{'es' if len(spans) > 2 else ''} besides)"
         where = (f": the {epoch} epoch's {SURFACE_NAMES[s].replace('_', ' ')} at chainage "
-                 f"{a:.0f}-{b:.0f} m is {max(r, 1 / r):.2f} times as thick as the {other}'s "
-                 f"(over the whole survey {max(survey, 1 / survey):.2f}){more}{extra}")
+                 f"{a:.0f}-{b:.0f} m is {folded:.2f} times as thick as the {other}'s, against "
+                 f"the rest of the survey (the compared spread over the reference's {r:.2f} "
+                 f"there, {survey:.2f} over the survey){more}{extra}")
     local = _check(
         "deformation.thick_surface", worst, qc.max_spread_ratio, "<=", "",
         f"one epoch sees a stretch of a surface thicker than the other{where}: a map that "

@@ -604,9 +604,9 @@ def _fit_edge(
         # oblique crossing: 2 and 3 centres 15 m apart) swing a cubic through them 2.5 times
         # the length of the centres' path; the axis through them is the edge's curve, and its
         # centres' scatter about it is still checked. With more centres (sweep case 57000010:
-        # 3 scattered by 0.5-1 m at the far side of a crossing, 7 on a line 15 m on: a cubic
-        # 555 m long) the axis stands only where it runs through most of them
-        # the line most of them lie on (the skeleton's axis ran 9 degrees off it there)
+        # 3 scattered by 0.5-2 m at one end, 7 on a line 15 m on: a cubic 555 m long) the
+        # curve is the line most of them lie on (the skeleton's axis ran 9 degrees off it),
+        # and without such a line the implausible curve is refused
         if len(ok) >= 2 * least:
             line = _on_line(ok, len(records), c)
             if line is None:

@@ -45,9 +45,9 @@ class DeformationResult:
         (a SLAM map's double wall); their deformation is NaN.
     spread_ratio : float16, optional
         ``robust`` only: on the measured shell, the spread of the compared epoch's cylinder
-        over the reference's, each over its survey-wide typical spread (about 1 where both
-        epochs see one surface alike; NaN elsewhere). Not written; the quality check
-        ``deformation.thick_surface`` reads it.
+        over the reference's (about 1 where both epochs see one surface alike; NaN
+        elsewhere). Not written; the quality checks ``deformation.thick_surface`` and
+        ``deformation.epoch_spread`` read it.
     typical_spread : (float, float), optional
         ``robust`` only: the survey's typical cylinder spread of the reference and the
         compared epoch, metres.
