@@ -243,27 +243,6 @@ def two_surfaces(
 _TWO_SURFACE_CHUNK = 4_000
 
 
-def _spread_ratio(r: RobustDeformation, shell: np.ndarray) -> np.ndarray:
-    """Per compared point of the measured shell, its compared cylinder's spread over its
-    reference cylinder's (float16, a ratio needs no more and a kilometre's survey holds 55 M
-    of them; NaN elsewhere).
-
-    A map that holds a surface twice closer than the noise can separate (a SLAM pass 2-4 cm
-    off the other) shows no second surface, only a thicker one: at +-1.5 cm noise a wall
-    held twice 3 cm apart reads a spread 1.2-1.35 times the other epoch's, and its values there
-    drift by up to half the offset with a LoD95 that widens only where a cylinder passes
-    the roughness gate. The ratio is about 1 wherever both epochs see one surface alike (it
-    is not taken over the typical spreads: a map held twice throughout would raise those)."""
-    out = np.full(len(shell), np.nan, dtype=np.float16)
-    sr = np.asarray(r.sigma_ref, dtype=np.float64)
-    sc = np.asarray(r.sigma_cmp, dtype=np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = sc / sr
-    use = shell & np.isfinite(np.asarray(r.deformation)) & np.isfinite(ratio) & (sr > 0)
-    out[use] = ratio[use]
-    return out
-
-
 def _both_surfaces(indexes, centres, origin, n, d, w, radius, reach) -> np.ndarray:
     """:func:`two_surfaces` for one chunk of points (``indexes``: each epoch's points near
     them and their radius index, compared first)."""
@@ -290,6 +269,27 @@ def _both_surfaces(indexes, centres, origin, n, d, w, radius, reach) -> np.ndarr
     both_cmp = c_there >= np.maximum(_TWO_SURFACE_MIN, _TWO_SURFACE_SHARE * c_here)
     both_ref = r_here >= np.maximum(_TWO_SURFACE_MIN, _TWO_SURFACE_SHARE * r_there)
     return both_cmp | both_ref
+
+
+def _spread_ratio(r: RobustDeformation, shell: np.ndarray) -> np.ndarray:
+    """Per compared point of the measured shell, its compared cylinder's spread over its
+    reference cylinder's (float16, a ratio needs no more and a kilometre's survey holds 55 M
+    of them; NaN elsewhere).
+
+    A map that holds a surface twice closer than the noise can separate (a SLAM pass 2-4 cm
+    off the other) shows no second surface, only a thicker one: at +-1.5 cm noise a wall
+    held twice 3 cm apart reads a spread 1.2-1.35 times the other epoch's, and its values there
+    drift by up to half the offset with a LoD95 that widens only where a cylinder passes
+    the roughness gate. The ratio is about 1 wherever both epochs see one surface alike (it
+    is not taken over the typical spreads: a map held twice throughout would raise those)."""
+    out = np.full(len(shell), np.nan, dtype=np.float16)
+    sr = np.asarray(r.sigma_ref, dtype=np.float64)
+    sc = np.asarray(r.sigma_cmp, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = sc / sr
+    use = shell & np.isfinite(np.asarray(r.deformation)) & np.isfinite(ratio) & (sr > 0)
+    out[use] = ratio[use]
+    return out
 
 
 _AMBIGUOUS_COS = 0.5  # |normal . radial| below this: the outward side of a surface is unsure
@@ -606,8 +606,7 @@ def compute_deformation(
                 lod95[take] = r2.lod95[sub]
             # a change that one epoch contradicts by showing both of its surfaces (a SLAM
             # map's double wall): no value there, rather than a confident wrong one
-            typical = r.meta.get("typical_spread")
-            sigma = float(np.nanmax(typical)) if typical is not None else np.nan
+            sigma = float(np.nanmax(typical_spread)) if typical_spread is not None else np.nan
             double = two_surfaces(ref, cmp, np.isfinite(deformation) & significant,
                                   deformation, nrm, sigma,
                                   float(getattr(dcfg, "cylinder_radius", 0.2)))
