@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 from ..cloud import check_points
 from ..config import CenterlineConfig, NetworkConfig, SlicingConfig
 from ..curve import Centerline
+from ..engine import thread_map
 from ..errors import ImplausibleExtentError, NetworkError, NotATunnelError
 from ..network import CenterlineNetwork, Junction, NetworkEdge
 from ..progress import ProgressCallback, notify
@@ -471,30 +472,37 @@ def _slice_edge(
     else:
         _roll(local, shape.roll_at(axis, local[:, 0]))
     leans = shape.leans
-    records = []
     thick = thickness_for(local[:, 0], sl.thickness, sl.min_points)
-    for s in slice_along_axis(local[:, 0], step=sl.step, thickness=thick):
-        rec = SliceRecord(station=s.station, n_points=len(s.index))
-        records.append(rec)
-        if _in_zones(s.station, zones):
+    slices = slice_along_axis(local[:, 0], step=sl.step, thickness=thick)
+    records = [SliceRecord(station=s.station, n_points=len(s.index)) for s in slices]
+    todo = []
+    for i, rec in enumerate(records):
+        if _in_zones(rec.station, zones):
             rec.reason = JUNCTION
-            continue
-        if rec.n_points < sl.min_points:
+        elif rec.n_points < sl.min_points:
             rec.reason = f"too few points ({rec.n_points} < {sl.min_points})"
-            continue
-        rf, walls, _ = analyse_slice(local[s.index], s.station, slicing=sl, settings=c,
-                                     leans=leans)
+        else:
+            todo.append((i,))
+
+    def one(i: int) -> None:
+        # each task fills its own slice's record from that slice alone
+        rec, pts_i = records[i], local[slices[i].index]
+        rf, walls, _ = analyse_slice(pts_i, rec.station, slicing=sl, settings=c, leans=leans)
         if not record_lines(rec, rf, walls):
             if walls is None:
-                continue
-            edges = _extent_walls(local[s.index], rf.floor, rf.roof, c)
+                return
+            edges = _extent_walls(pts_i, rf.floor, rf.roof, c)
             if edges is None:
-                continue
+                return
             rec.left, rec.right = edges
             rec.methods["left"] = rec.methods["right"] = EXTENT_WALLS
             rec.reason = ""
         rec.width, rec.height = rec.left - rec.right, rec.roof - rec.floor
         rec.ok = True
+
+    # the slices are independent (see :func:`.extract._slice_pass`): Dask's threads run them
+    # side by side and the records are the serial ones
+    thread_map(one, todo)
     smooth_roof_lifts(records, c.neighbour_window)
     _drop_bridged_extents(records)
     _reject_jumps(records, c)
