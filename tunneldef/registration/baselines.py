@@ -17,7 +17,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from ..spatial import morton_order, unique_rows
+from ..spatial import morton_order, unique_rows, voxel_grid
 from ..transforms import apply_transform
 
 __all__ = ["BASELINES", "icp_point", "icp_plane", "gicp", "ndt"]
@@ -25,15 +25,12 @@ __all__ = ["BASELINES", "icp_point", "icp_plane", "gicp", "ndt"]
 _reg = o3d.pipelines.registration
 
 
-def _pcd(xyz: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, dtype=np.float64)))
-    return pc.voxel_down_sample(voxel) if voxel > 0 else pc
-
-
-def _sorted(pc: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
-    """``pc``'s points in Morton order (see :func:`_open3d_icp`)."""
-    pts = np.asarray(pc.points)
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[morton_order(pts)]))
+def _sorted(xyz: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
+    """The points thinned to a ``voxel`` grid (none when 0), in Morton order (see
+    :func:`_open3d_icp`), as an Open3D cloud."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    pts = voxel_grid(xyz, voxel) if voxel > 0 else xyz[morton_order(xyz)]
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
 
 
 def _criteria(iterations: int) -> o3d.pipelines.registration.ICPConvergenceCriteria:
@@ -78,11 +75,12 @@ def _open3d_icp(
     # (a sum over the same correspondences)
     if ref_normals is not None and kind == "plane":
         order = morton_order(ref_xyz)
-        dst = _pcd(np.asarray(ref_xyz)[order], 0.0)
+        dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+            np.asarray(ref_xyz, dtype=np.float64)[order]))
         dst.normals = o3d.utility.Vector3dVector(
             np.asarray(ref_normals, dtype=np.float64)[order])
     else:
-        dst = _sorted(_pcd(ref_xyz, voxel))
+        dst = _sorted(ref_xyz, voxel)
         if kind == "plane":
             dst.estimate_normals(
                 o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
@@ -92,7 +90,7 @@ def _open3d_icp(
         "plane": _reg.TransformationEstimationPointToPlane,
         "generalized": _reg.TransformationEstimationForGeneralizedICP,
     }[kind]()
-    res = run(_sorted(_pcd(cmp_xyz, voxel)), dst, max_distance, init, estimation,
+    res = run(_sorted(cmp_xyz, voxel), dst, max_distance, init, estimation,
               _criteria(iterations))
     return np.asarray(res.transformation)
 
@@ -187,8 +185,8 @@ def ndt(
     ndarray, shape (4, 4)
         The cmp -> ref transform.
     """
-    src = np.asarray(_pcd(cmp_xyz, 2 * voxel).points)
-    ref = np.asarray(_pcd(ref_xyz, voxel).points)
+    src = np.asarray(_sorted(cmp_xyz, 2 * voxel).points)
+    ref = np.asarray(_sorted(ref_xyz, voxel).points)
     t = np.asarray(init, dtype=np.float64).copy()
     c0 = ref.mean(axis=0)  # work about the reference centroid (numerics)
     for size in (2 * cell, cell):
